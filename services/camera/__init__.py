@@ -1,0 +1,1 @@
+"""Event sources, filters, packetizer and the camera service."""

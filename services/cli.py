@@ -1,0 +1,244 @@
+"""The `etam` command line (DESIGN.md section 8). Every subcommand has --help; errors go to stderr
+with a non-zero exit and name what is wrong."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import threading
+from pathlib import Path
+
+from zenoh import ZError
+
+from services import config
+from services.camera.sources import SourceError
+
+log = logging.getLogger("etam")
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def _zenoh_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help=f"endpoint to join, e.g. tcp/HOST:7447 (repeatable; env ETAM_CONNECT; default {DEFAULT_CONNECT})")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (env ETAM_LISTEN)")
+    g.add_argument("--mode", choices=("peer", "client"), help="zenoh mode (env ETAM_MODE; default peer)")
+    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file; flags override it")
+    g.add_argument("--multicast", action="store_true", default=None,
+                   help="enable multicast scouting (off by default; env ETAM_MULTICAST=1)")
+    p.add_argument("--rig", help="rig name in key expressions (env ETAM_RIG; default: host name)")
+    p.add_argument("--log-level", default=os.environ.get("ETAM_LOG", "INFO"),
+                   choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+def _zenoh_settings(args: argparse.Namespace) -> config.ZenohSettings:
+    settings = config.resolve(args.mode, args.connect, args.listen, args.multicast, args.zenoh_config)
+    if not settings.connect and not settings.listen and not settings.config_file and not settings.multicast:
+        settings.connect = [DEFAULT_CONNECT]
+    return settings
+
+
+def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - ServiceOptions
+    from services.runtime import ServiceOptions
+
+    return ServiceOptions(rig=config.resolve_rig(args.rig), name=args.name or kind, zenoh=_zenoh_settings(args))
+
+
+def _cmd_camera(args: argparse.Namespace) -> int:
+    from services.camera.service import CameraService
+    from services.camera.sources import open_source
+
+    source = open_source(args.source, seed=args.seed)
+    opts = _service_options(args, "cam0")
+    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events).run()
+
+
+def _cmd_tracker(args: argparse.Namespace) -> int:
+    from services.tracker.service import TrackerService
+
+    return TrackerService(_service_options(args, "objects")).run()
+
+
+def _cmd_web(args: argparse.Namespace) -> int:
+    from web.service import WebService
+
+    return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from services.launcher import UpOptions, up
+
+    if args.duration is not None and args.duration <= 0:
+        raise config.ConfigError(f"--duration must be positive, got {args.duration}")
+    opts = UpOptions(
+        rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
+        web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
+        log_level=args.log_level,
+    )
+    if args.source.startswith("sim:"):
+        from services.camera.sources import open_source  # fail here, not in a restart loop
+
+        open_source(args.source)
+    return up(opts)
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    import zenoh
+
+    settings = config.resolve("router", None, args.listen or ["tcp/0.0.0.0:7447"], False, args.zenoh_config)
+    stop = threading.Event()
+    import signal
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with zenoh.open(settings.zenoh_config()):
+        log.info("zenoh router listening on %s", ", ".join(settings.listen))
+        stop.wait()
+    return 0
+
+
+def _open_session(args: argparse.Namespace):  # noqa: ANN202 - zenoh.Session
+    import zenoh
+
+    return zenoh.open(_zenoh_settings(args).zenoh_config())
+
+
+def _cmd_ls(args: argparse.Namespace) -> int:
+    from services.introspect import format_services, list_services
+
+    with _open_session(args) as session:
+        found = list_services(session, args.rig or "*", args.wait)
+    print(json.dumps(found, indent=2) if args.json else format_services(found))
+    return 0
+
+
+def _cmd_echo(args: argparse.Namespace) -> int:
+    from services.introspect import echo
+
+    with _open_session(args) as session:
+        n = echo(session, args.keyexpr, sys.stdout, args.count, args.timeout)
+    if args.count is not None and n < args.count:
+        print(f"etam echo: got {n} of {args.count} messages on {args.keyexpr} in {args.timeout} s", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _cmd_hz(args: argparse.Namespace) -> int:
+    from services.introspect import hz
+
+    with _open_session(args) as session:
+        hz(session, args.keyexpr, sys.stdout, args.period, args.reports, args.json)
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from benchmarks import suite
+
+    results = suite.run(quick=args.quick, only=args.only)
+    print(json.dumps(results, indent=2) if args.json else suite.format_results(results))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etam", description="ETAM: event-based tracking and mapping.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("up", help="run the whole rig (router, camera, tracker, dashboard)")
+    p.add_argument("--source", default="sim:objects", help="event source (default sim:objects)")
+    p.add_argument("--rig", help="rig name (env ETAM_RIG; default: host name)")
+    p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
+    p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")
+    p.add_argument("--no-web", action="store_true", help="do not start the dashboard")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds and exit 0")
+    p.add_argument("--report", metavar="FILE.json", help="write per-key and per-service counts at the end")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.set_defaults(func=_cmd_up)
+
+    p = sub.add_parser("router", help="run a zenoh router alone (for systemd deployments)")
+    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="default tcp/0.0.0.0:7447")
+    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.set_defaults(func=_cmd_router)
+
+    p = sub.add_parser("camera", help="run the camera service alone")
+    _zenoh_flags(p)
+    p.add_argument("--name", help="camera name in keys (default cam0)")
+    p.add_argument("--source", default="sim:objects", help="sim:objects (default)")
+    p.add_argument("--seed", type=int, default=0, help="simulator seed")
+    p.add_argument("--slice-us", type=int, default=1000, help="packet time slice in us (default 1000)")
+    p.add_argument("--max-events", type=int, default=100_000, help="largest packet (default 100000)")
+    p.set_defaults(func=_cmd_camera)
+
+    p = sub.add_parser("tracker", help="run the object tracker service alone")
+    _zenoh_flags(p)
+    p.add_argument("--name", help="tracker name in keys (default objects)")
+    p.set_defaults(func=_cmd_tracker)
+
+    p = sub.add_parser("web", help="run the dashboard service alone")
+    _zenoh_flags(p)
+    p.add_argument("--name", help="name in keys (default web)")
+    p.add_argument("--host", default="0.0.0.0", help="address to serve on (default all)")
+    p.add_argument("--port", type=int, default=8080, help="dashboard port (default 8080)")
+    p.set_defaults(func=_cmd_web)
+
+    p = sub.add_parser("ls", help="list live services and their keys with rates")
+    _zenoh_flags(p)
+    p.add_argument("--wait", type=float, default=1.5, help="seconds to listen for Stats (default 1.5)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_ls)
+
+    p = sub.add_parser("echo", help="print the messages on a key expression as JSON lines")
+    _zenoh_flags(p)
+    p.add_argument("keyexpr", help="e.g. 'etam/*/tracker/objects/tracks'")
+    p.add_argument("--count", type=int, help="exit after N messages")
+    p.add_argument("--timeout", type=float, help="exit after S seconds")
+    p.set_defaults(func=_cmd_echo)
+
+    p = sub.add_parser("hz", help="print message and event rates on a key expression")
+    _zenoh_flags(p)
+    p.add_argument("keyexpr", help="e.g. 'etam/*/camera/*/events'")
+    p.add_argument("--period", type=float, default=1.0, help="seconds between reports")
+    p.add_argument("--reports", type=int, help="exit after N reports")
+    p.add_argument("--json", action="store_true", help="one JSON object per report")
+    p.set_defaults(func=_cmd_hz)
+
+    p = sub.add_parser("bench", help="run the performance suite")
+    p.add_argument("--json", action="store_true", help="machine-readable results on stdout")
+    p.add_argument("--quick", action="store_true", help="shorter runs (for smoke tests)")
+    p.add_argument("--only", action="append", help="run only these benchmarks (e.g. transport)")
+    p.set_defaults(func=_cmd_bench)
+    return parser
+
+
+SERVICE_COMMANDS = ("camera", "tracker", "web")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=getattr(args, "log_level", "INFO"), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        return 130
+    except (config.ConfigError, SourceError, OSError, ZError) as exc:
+        print(f"etam {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+def run() -> None:
+    """Console-script entry. Service processes leave with os._exit once their session is closed:
+    zenoh's threads can otherwise hold the interpreter at exit (DESIGN.md section 11)."""
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
+
+
+if __name__ == "__main__":
+    run()

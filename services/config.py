@@ -1,0 +1,94 @@
+"""Zenoh session settings from a JSON5 config file, then environment variables, then flags.
+
+Multicast scouting is off by default: on a drone's network a service should join the rig it is told
+to join (``--connect tcp/HOST:7447``), not whatever answers on the LAN.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from services import keys
+
+DEFAULT_PORT = 7447
+
+
+class ConfigError(ValueError):
+    """A setting that cannot be used; the text names the setting and the value."""
+
+
+@dataclass
+class ZenohSettings:
+    """Where and how a process joins the zenoh network."""
+
+    mode: str = "peer"  # peer, client or router
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    multicast: bool = False
+    config_file: str | None = None
+
+    def zenoh_config(self) -> zenoh.Config:
+        """The zenoh.Config these settings describe."""
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError(f"mode: {self.mode!r} is not one of peer, client, router")
+        if self.config_file:
+            path = Path(self.config_file)
+            if not path.is_file():
+                raise ConfigError(f"config file {path} does not exist")
+            try:
+                conf = zenoh.Config.from_file(str(path))
+            except Exception as exc:  # zenoh raises ZError with the parser's message
+                raise ConfigError(f"config file {path}: {exc}") from None
+        else:
+            conf = zenoh.Config()
+        try:
+            conf.insert_json5("mode", json.dumps(self.mode))
+            if self.connect:
+                conf.insert_json5("connect/endpoints", json.dumps(self.connect))
+            if self.listen:
+                conf.insert_json5("listen/endpoints", json.dumps(self.listen))
+            conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
+        except Exception as exc:
+            raise ConfigError(f"zenoh settings {self}: {exc}") from None
+        return conf
+
+
+def _split(value: str | None) -> list[str]:
+    return [v.strip() for v in (value or "").split(",") if v.strip()]
+
+
+def _endpoint(value: str) -> str:
+    """Accept ``HOST:PORT`` and ``HOST`` as shorthands for ``tcp/HOST:PORT``."""
+    if "/" in value:
+        return value
+    return f"tcp/{value}" if ":" in value else f"tcp/{value}:{DEFAULT_PORT}"
+
+
+def resolve(
+    mode: str | None = None,
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    multicast: bool | None = None,
+    config_file: str | None = None,
+) -> ZenohSettings:
+    """Settings from flags (given here) over environment (ETAM_MODE, ETAM_CONNECT, ETAM_LISTEN,
+    ETAM_MULTICAST, ETAM_ZENOH_CONFIG) over defaults."""
+    env = os.environ
+    env_multicast = env.get("ETAM_MULTICAST", "").lower() in ("1", "true", "yes", "on")
+    return ZenohSettings(
+        mode=mode or env.get("ETAM_MODE") or "peer",
+        connect=[_endpoint(c) for c in (connect or _split(env.get("ETAM_CONNECT")))],
+        listen=[_endpoint(c) for c in (listen or _split(env.get("ETAM_LISTEN")))],
+        multicast=env_multicast if multicast is None else multicast,
+        config_file=config_file or env.get("ETAM_ZENOH_CONFIG") or None,
+    )
+
+
+def resolve_rig(rig: str | None) -> str:
+    """The rig name: flag, then ETAM_RIG, then the host name."""
+    return keys.sanitize(rig or os.environ.get("ETAM_RIG") or keys.default_rig())

@@ -1,0 +1,1 @@
+"""Object tracking and camera ego-motion."""

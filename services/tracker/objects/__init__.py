@@ -1,0 +1,1 @@
+"""Object tracking algorithms (pure numpy; seeds 002, 003, 004)."""

@@ -1,0 +1,1 @@
+"""The viser dashboard service."""

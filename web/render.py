@@ -1,0 +1,73 @@
+"""Pictures for the dashboard: event frames with boxes, the service table (pure numpy / cv2)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.messages import Stats, Tracks
+
+ON_BGR = np.array([60, 60, 230], np.float32)  # red-ish for ON
+OFF_BGR = np.array([230, 160, 40], np.float32)  # blue-ish for OFF
+STATE_NAMES = {0: "new", 1: "", 2: "lost"}
+
+
+def event_frame(events: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A BGR image of the events: ON red, OFF blue, brighter with more events, on dark grey."""
+    img = np.full((height, width, 3), 30, np.float32)
+    if len(events):
+        inside = (events["x"] < width) & (events["y"] < height)
+        ev = events[inside]
+        idx = ev["y"].astype(np.int64) * width + ev["x"]
+        for pol, colour in ((1, ON_BGR), (0, OFF_BGR)):
+            sel = ev["p"] == pol
+            count = np.bincount(idx[sel], minlength=width * height).reshape(height, width)
+            alpha = np.minimum(count, 4)[..., None] / 4.0
+            img = img * (1 - alpha) + colour * alpha
+    return img.astype(np.uint8)
+
+
+def _colour(ident: int) -> tuple[int, int, int]:
+    hue = (ident * 47) % 180
+    bgr = cv2.cvtColor(np.uint8([[[hue, 200, 255]]]), cv2.COLOR_HSV2BGR)[0, 0]
+    return int(bgr[0]), int(bgr[1]), int(bgr[2])
+
+
+def draw_tracks(img: np.ndarray, tracks: Tracks | None, truth: Tracks | None, scale: int = 2) -> np.ndarray:
+    """Upscale `img` and draw truth boxes (thin white) and tracked boxes (coloured by id, labelled)."""
+    out = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    if truth is not None:
+        for box in truth.box:
+            x, y, w, h = (box * scale).astype(int)
+            cv2.rectangle(out, (x, y), (x + w, y + h), (235, 235, 235), 1)
+    if tracks is not None:
+        for ident, box, state in zip(tracks.id, tracks.box, tracks.state):
+            if state == 0:
+                continue
+            x, y, w, h = (box * scale).astype(int)
+            colour = _colour(int(ident))
+            cv2.rectangle(out, (x, y), (x + w, y + h), colour, 1 if state == 2 else 2)
+            label = f"#{ident} {STATE_NAMES.get(int(state), '')}".strip()
+            cv2.putText(out, label, (x, max(y - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+    return out
+
+
+def services_markdown(stats: dict[str, Stats], now_s: float, seen_s: dict[str, float]) -> str:
+    """A markdown table of live services: inputs and outputs with rates, drops and malformed."""
+    if not stats:
+        return "*No services seen yet.*"
+    lines = ["| service | key | msg/s | ev/s | dropped | bad | p99 ms |", "|---|---|---:|---:|---:|---:|---:|"]
+    for who in sorted(stats):
+        st = stats[who]
+        age = now_s - seen_s.get(who, now_s)
+        name = f"**{who}**" + (" (silent)" if age > 3 else "") + f"<br>{st.cpu_percent:.0f}% cpu, {st.rss_bytes / 2**20:.0f} MB"
+        rows = st.keys or [{"key": "-", "dir": "", "msg_rate": 0, "event_rate": 0, "dropped": 0, "malformed": 0,
+                            "latency_p99_ms": None}]
+        for i, row in enumerate(rows):
+            short = "/".join(str(row["key"]).split("/")[2:])
+            p99 = row.get("latency_p99_ms")
+            lines.append(
+                f"| {name if i == 0 else ''} | {row['dir']} {short} | {row['msg_rate']:.0f} | {row['event_rate']:.0f} "
+                f"| {row['dropped']} | {row['malformed']} | {'' if p99 is None else f'{p99:.1f}'} |"
+            )
+    return "\n".join(lines)
