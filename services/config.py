@@ -17,6 +17,14 @@ from services import keys
 
 DEFAULT_PORT = 7447
 
+TRANSPORT_DEFAULTS = {
+    # Python subscribers stall zenoh's receive thread while they wait for the GIL; give a sensor
+    # stream 50 ms and 16 batches of slack before the publisher drops, instead of 1 ms and 2.
+    "transport/link/tx/queue/congestion_control/drop/wait_before_drop": 50_000,
+    "transport/link/tx/queue/size/data": 16,
+}
+"""Zenoh transport settings ETAM uses when no config file is given (a config file is taken as is)."""
+
 
 class ConfigError(ValueError):
     """A setting that cannot be used; the text names the setting and the value."""
@@ -46,6 +54,8 @@ class ZenohSettings:
                 raise ConfigError(f"config file {path}: {exc}") from None
         else:
             conf = zenoh.Config()
+            for path, value in TRANSPORT_DEFAULTS.items():
+                conf.insert_json5(path, json.dumps(value))
         try:
             conf.insert_json5("mode", json.dumps(self.mode))
             if self.connect:

@@ -16,10 +16,6 @@ from services.messages import MessageError, Stats, decode
 
 def list_services(session: zenoh.Session, rig: str = "*", wait_s: float = 1.5) -> list[dict[str, Any]]:
     """Live services (liveliness tokens) with their latest Stats rows, gathered over `wait_s`."""
-    alive = set()
-    for reply in session.liveliness().get(keys.alive(rig), timeout=wait_s):
-        if reply.ok is not None:
-            alive.add(str(reply.ok.key_expr).rsplit("/", 1)[0])
     stats: dict[str, Stats] = {}
     lock = threading.Lock()
 
@@ -32,8 +28,12 @@ def list_services(session: zenoh.Session, rig: str = "*", wait_s: float = 1.5) -
             stats[str(sample.key_expr).rsplit("/", 1)[0]] = msg
 
     sub = session.declare_subscriber(keys.stats(rig), on_stats)
-    time.sleep(wait_s)
+    time.sleep(wait_s)  # also lets a fresh peer session learn the network before the liveliness query
     sub.undeclare()
+    alive = set()
+    for reply in session.liveliness().get(keys.alive(rig), timeout=wait_s):
+        if reply.ok is not None:
+            alive.add(str(reply.ok.key_expr).rsplit("/", 1)[0])
     out = []
     for prefix in sorted(alive | set(stats)):
         st = stats.get(prefix)

@@ -156,7 +156,8 @@ class TrafficMonitor:
                     if row["dir"] != "in":
                         continue
                     subs.append({"service": who, "key": row["key"], "messages": row["messages"],
-                                 "dropped": row["dropped"], "malformed": row["malformed"]})
+                                 "dropped": row["dropped"], "skipped": row.get("skipped", 0),
+                                 "malformed": row["malformed"]})
                     for key, entry in out_keys.items():
                         if zenoh.KeyExpr(row["key"]).intersects(zenoh.KeyExpr(key)):
                             entry["subscriber_dropped"] += row["dropped"]

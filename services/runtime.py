@@ -102,7 +102,10 @@ class Input:
                     self._room.wait(0.1)
             elif len(self._buf) >= self._maxsize:
                 self._buf.popleft()
-                self._counter.dropped += 1
+                if self.policy == "latest":
+                    self._counter.skipped += 1  # superseded by design, not lost
+                else:
+                    self._counter.dropped += 1
             self._buf.append(item)
             waiter, self._waiter = self._waiter, None
         if waiter is not None:

@@ -18,7 +18,8 @@ class KeyCounter:
     direction: str  # "in" or "out"
     messages: int = 0
     events: int = 0
-    dropped: int = 0
+    dropped: int = 0  # lost: seq gaps and fifo overflow
+    skipped: int = 0  # superseded unread under the `latest` policy, by design
     malformed: int = 0
     _win_messages: int = 0
     _win_events: int = 0
@@ -54,6 +55,7 @@ class KeyCounter:
             "msg_rate": self._win_messages / span,
             "event_rate": self._win_events / span,
             "dropped": self.dropped,
+            "skipped": self.skipped,
             "malformed": self.malformed,
             "latency_p50_ms": float(np.percentile(lat, 50)) if lat is not None else None,
             "latency_p99_ms": float(np.percentile(lat, 99)) if lat is not None else None,

@@ -37,6 +37,7 @@ class CameraService(Service):
         truth = self.publisher("truth/boxes")
         self.serve("info", lambda _req: self.info())
         info.publish(self.info())
+        await asyncio.sleep(0)
         start = time.monotonic()
         sensor_us = next_info_us = next_truth_us = 0
         paused_us = 0

@@ -29,7 +29,7 @@ class TrackerService(Service):
     async def main(self) -> None:
         out = self.publisher("tracks")
         next_update: dict[str, int] = {}
-        async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=256):
+        async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=1024):
             assert isinstance(msg, EventPacket)
             tracker = self._tracker_for(key, msg)
             if self.paused:

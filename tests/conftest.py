@@ -1,0 +1,70 @@
+"""Helpers for tests that start real ETAM processes on loopback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def etam_argv(*args: str) -> list[str]:
+    return [sys.executable, "-m", "services.cli", *args]
+
+
+@contextmanager
+def spawn(*args: str, **kw) -> Iterator[subprocess.Popen]:
+    """Run `etam ARGS` as a separate process; SIGTERM then SIGKILL it at the end, whatever happens."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **kw.pop("env", {})}
+    proc = subprocess.Popen(etam_argv(*args), cwd=ROOT, env=env, start_new_session=True, **kw)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(5)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+
+
+def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.1) -> object:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(period_s)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    """A zenoh router process on a free loopback port; yields its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with spawn("router", "--listen", endpoint):
+        time.sleep(0.5)
+        yield endpoint
+
+
+@pytest.fixture
+def rig(request: pytest.FixtureRequest) -> str:
+    """A rig name of this test's own, so tests never hear each other."""
+    return "t" + str(abs(hash(request.node.nodeid)) % 10**8)

@@ -1,0 +1,136 @@
+"""The pure parts: simulator, packetizer, decayed accumulation, clusters, association, stats, config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services import config, keys
+from services.camera.packetizer import Packetizer
+from services.camera.simulator import EventSimulator, ObjectsScene
+from services.camera.sources import SourceError, open_source
+from services.messages import EVENT_DTYPE
+from services.stats import KeyCounter
+from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, iou
+from services.tracker.objects.tracker import ObjectTracker
+
+
+def _events(ts: list[int]) -> np.ndarray:
+    ev = np.zeros(len(ts), EVENT_DTYPE)
+    ev["t"] = ts
+    return ev
+
+
+def test_simulator_is_deterministic_sorted_and_in_bounds() -> None:
+    a = EventSimulator(ObjectsScene(seed=3), seed=3).advance(300_000)
+    b = EventSimulator(ObjectsScene(seed=3), seed=3).advance(300_000)
+    assert len(a) > 1000 and a.tobytes() == b.tobytes()
+    assert np.all(np.diff(a["t"]) >= 0) and a["t"][0] > 0 and a["t"][-1] <= 300_000
+    assert a["x"].max() < 346 and a["y"].max() < 260 and set(np.unique(a["p"])) <= {0, 1}
+
+
+def test_simulator_events_fall_on_the_moving_objects() -> None:
+    scene = ObjectsScene(seed=1)
+    sim = EventSimulator(scene, seed=1)
+    sim.advance(2_990_000)
+    ev = sim.advance(3_000_000)
+    ids, boxes = scene.boxes(3_000_000)
+    assert len(ids) >= 1
+    inside = np.zeros(len(ev), bool)
+    for x, y, w, h in boxes:
+        inside |= (ev["x"] >= x - 3) & (ev["x"] <= x + w + 3) & (ev["y"] >= y - 3) & (ev["y"] <= y + h + 3)
+    assert inside.mean() > 0.9  # the rest is background-activity noise
+
+
+def test_packetizer_slices_caps_and_keeps_every_event() -> None:
+    p = Packetizer(slice_us=1000, max_events=3)
+    p.accept(_events([100, 200, 300, 400, 500, 1500, 2999]))
+    out = p.generate(2500)
+    assert [s for s, _ in out] == [300, 1000, 2000]  # 5 events in the first slice: split 3 + 2
+    assert [len(e) for _, e in out] == [3, 2, 1]
+    assert p.generate(2600) == []
+    p.accept(_events([3100]))
+    out = p.generate(4000)
+    assert [(s, len(e)) for s, e in out] == [(3000, 1), (4000, 1)]
+    with pytest.raises(ValueError):
+        Packetizer(slice_us=0)
+
+
+def test_packetizer_emits_empty_slices_so_time_advances() -> None:
+    assert Packetizer(slice_us=1000).generate(3000) == []  # the clock starts at the first call
+    p2 = Packetizer(slice_us=1000)
+    p2.accept(_events([10]))
+    assert [(s, len(e)) for s, e in p2.generate(3000)] == [(1000, 1), (2000, 0), (3000, 0)]
+
+
+def test_iou() -> None:
+    a = np.array([[0, 0, 10, 10]], np.float32)
+    b = np.array([[0, 0, 10, 10], [5, 0, 10, 10], [20, 20, 5, 5]], np.float32)
+    assert np.allclose(iou(a, b), [[1.0, 50 / 150, 0.0]])
+
+
+def test_association_keeps_ids_goes_lost_and_refinds() -> None:
+    mot = MultiObjectTracker()
+    box = np.array([[10, 10, 20, 20]], np.float32)
+    for i in range(5):
+        tracks = mot.update(i * 10_000, box + [2 * i, 0, 0, 0])
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
+    assert tracks[0].vel[0] == pytest.approx(200, rel=0.3)  # 2 px per 10 ms
+    tracks = mot.update(200_000, np.zeros((0, 4), np.float32))
+    assert tracks[0].state == LOST
+    tracks = mot.update(210_000, box + [45, 0, 0, 0])  # near where it would have drifted
+    assert tracks[0].ident == 1 and tracks[0].hits == 6
+
+
+def test_tracker_follows_simulated_objects() -> None:
+    scene = ObjectsScene(seed=0)
+    sim = EventSimulator(scene, seed=0)
+    tracker = ObjectTracker(scene.width, scene.height)
+    matched = total = 0
+    for t in range(10_000, 3_000_001, 10_000):
+        tracker.accept(sim.advance(t))
+        out = tracker.generate(t)
+        _, truth = scene.boxes(t)
+        if t > 500_000 and len(truth):
+            total += len(truth)
+            live = out.boxes[out.states == TRACKED]
+            if len(live):
+                matched += int((iou(truth, live).max(axis=1) > 0.3).sum())
+    assert total > 0 and matched / total > 0.5
+
+
+def test_key_counter_counts_gaps_and_windows() -> None:
+    c = KeyCounter("k", "in")
+    for seq in (1, 2, 5, 6):
+        c.sequence("k", seq)
+        c.count(10, latency_ms=1.0)
+    c.sequence("k", 1)  # publisher restarted: no loss counted
+    row = c.snapshot()
+    assert row["dropped"] == 2 and row["messages"] == 4 and row["events"] == 40
+    assert row["latency_p50_ms"] == 1.0 and row["msg_rate"] > 0
+    assert c.snapshot()["latency_p50_ms"] is None
+
+
+def test_keys_and_config(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert keys.key("r", "camera", "cam0", "events") == "etam/r/camera/cam0/events"
+    assert keys.parse("etam/r/tracker/objects/tracks") == ("r", "tracker", "objects", "tracks")
+    with pytest.raises(ValueError, match="rig"):
+        keys.key("a/b", "camera", "cam0", "events")
+    monkeypatch.setenv("ETAM_CONNECT", "10.0.0.2,tcp/10.0.0.3:9000")
+    monkeypatch.setenv("ETAM_MODE", "client")
+    s = config.resolve()
+    assert s.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:9000"] and s.mode == "client" and not s.multicast
+    assert config.resolve(connect=["host:1"]).connect == ["tcp/host:1"]  # flags win over env
+    conf = s.zenoh_config()
+    assert "false" in conf.get_json("scouting/multicast/enabled")
+    with pytest.raises(config.ConfigError, match="mode"):
+        config.ZenohSettings(mode="satellite").zenoh_config()
+    with pytest.raises(config.ConfigError, match="does not exist"):
+        config.ZenohSettings(config_file="/nonexistent.json5").zenoh_config()
+
+
+def test_unknown_sources_are_named() -> None:
+    with pytest.raises(SourceError, match="sim:nowhere"):
+        open_source("sim:nowhere")
+    with pytest.raises(SourceError, match="recording.aedat4"):
+        open_source("recording.aedat4")

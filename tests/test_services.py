@@ -1,0 +1,165 @@
+"""Real service processes talking over zenoh on loopback."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+import zenoh
+
+from services.config import ZenohSettings
+from services.messages import EVENT_DTYPE, CameraInfo, Command, EventPacket, Reply, Stats, Tracks, decode
+from tests.conftest import etam_argv, free_port, spawn, wait_for
+
+ROOT_ARGS = ("--log-level", "WARNING")
+
+
+def _session(endpoint: str) -> zenoh.Session:
+    return zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config())
+
+
+class Collector:
+    """Decoded messages from one key expression, gathered on zenoh's thread."""
+
+    def __init__(self, session: zenoh.Session, keyexpr: str) -> None:
+        self.messages: list[tuple[str, object]] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(keyexpr, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.messages.append((str(sample.key_expr), decode(sample.payload.to_bytes())))
+
+    def of(self, kind: type) -> list:
+        with self._lock:
+            return [m for _, m in self.messages if isinstance(m, kind)]
+
+
+def _query(session: zenoh.Session, key: str, request: Command | None = None):  # noqa: ANN202
+    payload = request.encode() if request is not None else None
+    for reply in session.get(key, payload=payload, timeout=5.0):
+        if reply.ok is not None:
+            return decode(reply.ok.payload.to_bytes())
+    raise AssertionError(f"no reply on {key}")
+
+
+def test_camera_tracker_and_subscriber_processes(router: str, rig: str) -> None:
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", *common), spawn("tracker", *common):
+        echo = subprocess.run(
+            etam_argv("echo", f"etam/{rig}/tracker/objects/tracks", "--count", "40", "--timeout", "40",
+                      "--connect", router),
+            capture_output=True, text=True, timeout=60,
+        )
+    assert echo.returncode == 0, echo.stderr
+    lines = [json.loads(line) for line in echo.stdout.splitlines()]
+    assert len(lines) == 40 and all(line["type"] == "Tracks" for line in lines)
+    assert all(line["key"] == f"etam/{rig}/tracker/objects/tracks" for line in lines)
+    assert any(1 in (line["state"] if isinstance(line["state"], list) else []) for line in lines[10:])
+    stamps = [line["t"] for line in lines]
+    assert stamps == sorted(stamps)
+
+
+def test_garbage_on_events_is_counted_and_the_tracker_lives_on(router: str, rig: str) -> None:
+    events_key = f"etam/{rig}/camera/cam0/events"
+    with spawn("tracker", "--connect", router, "--rig", rig, *ROOT_ARGS) as tracker, _session(router) as s:
+        stats = Collector(s, f"etam/{rig}/tracker/objects/stats")
+        tracks = Collector(s, f"etam/{rig}/tracker/objects/tracks")
+        wait_for(lambda: stats.of(Stats), 20, "the tracker's first Stats")
+        for i in range(50):
+            s.put(events_key, b"\x93garbage" * (i + 1))
+        s.put(events_key, Command(op="ping").encode())  # valid message, wrong type
+        wait_for(lambda: any(r["malformed"] >= 51 for st in stats.of(Stats) for r in st.keys if r["dir"] == "in"),
+                 10, "malformed count in the tracker's Stats")
+        assert tracker.poll() is None
+        ev = np.zeros(50, EVENT_DTYPE)
+        for k in range(30):  # valid packets afterwards are still tracked
+            ev["t"] = k * 1000 + np.arange(50)
+            s.put(events_key, EventPacket(seq=k + 1, stamp=(k + 1) * 1000, width=64, height=48, events=ev).encode())
+        wait_for(lambda: tracks.of(Tracks), 10, "Tracks after the garbage")
+        stats.sub.undeclare()
+        tracks.sub.undeclare()
+    assert tracker.returncode in (0, -signal.SIGTERM)
+
+
+def test_sigterm_stops_a_service_within_two_seconds(router: str, rig: str) -> None:
+    with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS) as cam, _session(router) as s:
+        stats = Collector(s, f"etam/{rig}/camera/cam0/stats")
+        wait_for(lambda: stats.of(Stats), 20, "the camera's Stats")
+        stats.sub.undeclare()
+        t = time.monotonic()
+        cam.send_signal(signal.SIGTERM)
+        code = cam.wait(10)
+        elapsed = time.monotonic() - t
+    assert code == 0
+    assert elapsed < 2.0 + 1.0, f"shutdown took {elapsed:.2f} s (contract: 2 s, plus 1 s of interpreter exit)"
+
+
+def test_queries_info_and_commands(router: str, rig: str) -> None:
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", *common), spawn("tracker", *common), _session(router) as s:
+        wait_for(lambda: list(s.liveliness().get(f"etam/{rig}/tracker/objects/alive", timeout=1.0)), 20,
+                 "the tracker's liveliness token")
+        info = _query(s, f"etam/{rig}/camera/cam0/info")
+        assert isinstance(info, CameraInfo) and (info.width, info.height) == (346, 260)
+        assert info.K[0, 0] > 0 and info.K[2, 2] == 1
+        cmd = f"etam/{rig}/tracker/objects/cmd"
+        pong = _query(s, cmd, Command(op="ping"))
+        assert isinstance(pong, Reply) and pong.ok and pong.result["service"] == "tracker"
+        got = _query(s, cmd, Command(op="set", args={"density": 0.5}))
+        assert got.ok and got.result["density"] == 0.5
+        bad = _query(s, cmd, Command(op="set", args={"nonsense": 1}))
+        assert not bad.ok and "nonsense" in bad.error
+        wrong = _query(s, cmd, Command(op="set", args={"density": "high"}))
+        assert not wrong.ok and "density" in wrong.error
+        assert _query(s, cmd, Command(op="reset")).ok
+        unknown = _query(s, cmd, Command(op="fly"))
+        assert not unknown.ok and "fly" in unknown.error
+
+
+def test_ls_and_hz_show_the_rig(router: str, rig: str) -> None:
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", *common), spawn("tracker", *common):
+        time.sleep(3)
+        ls = subprocess.run(etam_argv("ls", "--json", "--connect", router, "--rig", rig),
+                            capture_output=True, text=True, timeout=30)
+        hz = subprocess.run(etam_argv("hz", f"etam/{rig}/camera/*/events", "--reports", "2", "--json",
+                                      "--connect", router), capture_output=True, text=True, timeout=30)
+    assert ls.returncode == 0, ls.stderr
+    found = {s["prefix"]: s for s in json.loads(ls.stdout)}
+    assert set(found) == {f"etam/{rig}/camera/cam0", f"etam/{rig}/tracker/objects"}
+    assert all(s["alive"] for s in found.values())
+    outs = {r["key"] for r in found[f"etam/{rig}/camera/cam0"]["keys"] if r["dir"] == "out"}
+    assert f"etam/{rig}/camera/cam0/events" in outs
+    assert hz.returncode == 0, hz.stderr
+    last = json.loads(hz.stdout.splitlines()[-1])
+    rate = last[f"etam/{rig}/camera/cam0/events"]["msg_rate"]
+    assert 500 < rate < 1500  # 1 ms packets
+
+
+def test_web_serves_the_dashboard(router: str, rig: str) -> None:
+    port = free_port()
+    with spawn("web", "--connect", router, "--rig", rig, "--port", str(port), *ROOT_ARGS), _session(router) as s:
+        wait_for(lambda: list(s.liveliness().get(f"etam/{rig}/web/web/alive", timeout=1.0)), 30, "the web service")
+        pong = _query(s, f"etam/{rig}/web/web/cmd", Command(op="ping"))
+        assert pong.result["port"] == port
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10).read().decode()
+    assert "<html" in page.lower()
+
+
+def test_bad_flags_give_clear_errors(tmp_path) -> None:  # noqa: ANN001
+    bad = subprocess.run(etam_argv("camera", "--source", "sim:nowhere"), capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 2 and "sim:nowhere" in bad.stderr and "Traceback" not in bad.stderr
+    cfg = subprocess.run(etam_argv("tracker", "--zenoh-config", str(tmp_path / "missing.json5")),
+                         capture_output=True, text=True, timeout=30)
+    assert cfg.returncode == 2 and "missing.json5" in cfg.stderr and "Traceback" not in cfg.stderr
+    up = subprocess.run(etam_argv("up", "--duration", "-1"), capture_output=True, text=True, timeout=30)
+    assert up.returncode == 2 and "--duration" in up.stderr
+    flag = subprocess.run(etam_argv("up", "--frobnicate"), capture_output=True, text=True, timeout=30)
+    assert flag.returncode == 2 and "frobnicate" in flag.stderr
