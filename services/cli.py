@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except KeyboardInterrupt:
         return 130
-    except (config.ConfigError, SourceError, OSError, ZError) as exc:
+    except (config.ConfigError, SourceError, OSError, ZError, ValueError) as exc:
         print(f"etam {args.command}: {exc}", file=sys.stderr)
         return 2
 

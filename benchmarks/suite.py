@@ -1,0 +1,89 @@
+"""`etam bench`: every benchmark of the suite, with results as plain data."""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+
+import numpy as np
+import psutil
+
+from benchmarks import transport
+
+
+def _tracker(quick: bool) -> list[dict]:
+    """The object tracker alone on simulated events: events/s it digests and ms per update."""
+    from services.camera.simulator import EventSimulator, ObjectsScene
+    from services.tracker.objects.tracker import ObjectTracker
+
+    scene = ObjectsScene()
+    sim = EventSimulator(scene)
+    duration_us = 1_000_000 if quick else 4_000_000
+    packets = []
+    for t in range(10_000, duration_us + 1, 10_000):
+        packets.append((t, sim.advance(t)))
+    tracker = ObjectTracker(scene.width, scene.height)
+    n_events = sum(len(ev) for _, ev in packets)
+    per_update = []
+    t0 = time.perf_counter()
+    for t, ev in packets:
+        t1 = time.perf_counter()
+        tracker.accept(ev)
+        tracker.generate(t)
+        per_update.append((time.perf_counter() - t1) * 1e3)
+    wall = time.perf_counter() - t0
+    return [{"stage": "tracker.objects", "events": n_events, "events_per_s": n_events / wall,
+             "update_ms_p50": float(np.percentile(per_update, 50)),
+             "update_ms_p99": float(np.percentile(per_update, 99)),
+             "realtime_factor": duration_us / 1e6 / wall}]
+
+
+def _simulator(quick: bool) -> list[dict]:
+    """The built-in simulator: events generated per second of CPU, and real-time factor."""
+    from services.camera.simulator import EventSimulator, ObjectsScene
+
+    sim = EventSimulator(ObjectsScene())
+    duration_us = 1_000_000 if quick else 4_000_000
+    t0 = time.perf_counter()
+    n = len(sim.advance(duration_us))
+    wall = time.perf_counter() - t0
+    return [{"stage": "camera.simulator.objects", "events": n, "events_per_s": n / wall,
+             "realtime_factor": duration_us / 1e6 / wall}]
+
+
+BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
+    "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
+    "tracker": _tracker,
+    "simulator": _simulator,
+}
+
+
+def run(quick: bool = False, only: list[str] | None = None) -> dict:
+    """Run the chosen benchmarks; a dict with the machine and each benchmark's rows."""
+    unknown = set(only or []) - set(BENCHMARKS)
+    if unknown:
+        raise ValueError(f"unknown benchmark(s) {', '.join(sorted(unknown))}; known: {', '.join(BENCHMARKS)}")
+    results = {"machine": {"cpu": platform.processor() or platform.machine(), "cores": psutil.cpu_count(),
+                           "python": platform.python_version()}}
+    for name, bench in BENCHMARKS.items():
+        if not only or name in only:
+            results[name] = bench(quick)
+    return results
+
+
+def format_results(results: dict) -> str:
+    """A human-readable table per benchmark."""
+    lines = [f"machine: {results['machine']}"]
+    for row in results.get("transport", []):
+        lines.append(
+            f"transport  offered {row['offered_events_per_s'] / 1e6:5.1f} Mev/s "
+            f"({row['events_per_packet']} ev/packet): {row['messages_per_s']:7.0f} msg/s "
+            f"{row['events_per_s'] / 1e6:6.2f} Mev/s delivered, lost {row['lost_messages']}, "
+            f"latency p50 {row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms")
+    for key in ("tracker", "simulator"):
+        for row in results.get(key, []):
+            extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))
+            lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
+                         f"{row['realtime_factor']:.1f}x real time{extra}")
+    return "\n".join(lines)

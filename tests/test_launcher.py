@@ -1,0 +1,101 @@
+"""`etam up` end to end: steady flows with no loss, restarts of a killed service, no orphans."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+from tests.conftest import ROOT, etam_argv, free_port, wait_for
+
+
+def _rig_processes(rig: str) -> list[psutil.Process]:
+    """The service processes (not the launcher) of one rig."""
+    out = []
+    for proc in psutil.process_iter(["cmdline"]):
+        cmd = proc.info["cmdline"] or []
+        if rig in cmd and "services.cli" in cmd and cmd[cmd.index("services.cli") + 1] != "up":
+            out.append(proc)
+    return out
+
+
+def _up(rig: str, report: Path, duration: float, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        etam_argv("up", "--duration", str(duration), "--no-web", "--report", str(report), "--rig", rig,
+                  "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING", *extra),
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+@pytest.mark.slow
+def test_up_runs_steady_with_no_loss(tmp_path: Path, rig: str) -> None:
+    report_path = tmp_path / "r.json"
+    proc = _up(rig, report_path, 20)
+    out, err = proc.communicate(timeout=90)
+    assert proc.returncode == 0, err
+    report = json.loads(report_path.read_text())
+    keys = report["keys"]
+    events, truth, tracks = (keys[f"etam/{rig}/{k}"] for k in
+                             ("camera/cam0/events", "camera/cam0/truth/boxes", "tracker/objects/tracks"))
+    assert events["events"] > 100_000 and events["type"] == "EventPacket"
+    for entry, rate in ((events, 1000), (truth, 50), (tracks, 100)):
+        assert 0.8 * rate < entry["msg_rate"] < 1.2 * rate
+        assert entry["msg_rate_min"] > 0.7 * rate and entry["msg_rate_max"] < 1.3 * rate  # steady, second by second
+        assert entry["dropped"] == 0 and entry["subscriber_dropped"] == 0 and entry["subscriber_malformed"] == 0
+    assert all(s["restarts"] == 0 for s in report["services"].values())
+    assert set(report["services"]) == {"camera", "tracker"}
+    assert not _rig_processes(rig), "processes left behind"
+
+
+@pytest.mark.slow
+def test_killed_tracker_is_restarted_within_five_seconds(tmp_path: Path, rig: str) -> None:
+    report_path = tmp_path / "r.json"
+    proc = _up(rig, report_path, 15)
+    try:
+        tracker = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline()], 20, "the tracker")[0]
+        time.sleep(2)
+        tracker.kill()
+        killed_at = time.monotonic()
+        new = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != tracker.pid],
+                       10, "a new tracker process")
+        restart_s = time.monotonic() - killed_at
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert restart_s < 5.0
+    assert proc.returncode == 0, err
+    assert "tracker exited" in err and "restarting" in err
+    report = json.loads(report_path.read_text())
+    assert report["services"]["tracker"]["restarts"] == 1
+    assert report["services"]["tracker"]["exit_codes"] == [-signal.SIGKILL]
+    assert report["services"]["camera"]["restarts"] == 0
+    assert not psutil.pid_exists(new[0].pid) or new[0].status() == psutil.STATUS_ZOMBIE
+    assert not _rig_processes(rig)
+
+
+@pytest.mark.slow
+def test_sigint_stops_the_rig_without_orphans(tmp_path: Path, rig: str) -> None:
+    proc = _up(rig, tmp_path / "r.json", 60)
+    wait_for(lambda: len(_rig_processes(rig)) == 2, 20, "both services")
+    time.sleep(1)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert (tmp_path / "r.json").exists()
+    assert not _rig_processes(rig)
+
+
+@pytest.mark.slow
+def test_launcher_killed_hard_leaves_no_orphans(tmp_path: Path, rig: str) -> None:
+    proc = _up(rig, tmp_path / "r.json", 60)
+    wait_for(lambda: len(_rig_processes(rig)) == 2, 20, "both services")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=20)
+    wait_for(lambda: not _rig_processes(rig), 10, "the services to follow their launcher")
