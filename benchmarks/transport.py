@@ -48,7 +48,7 @@ class Sink(Service):
             n_events += len(msg.events)
             lat_ms.append((now - msg.sent) / 1e6)
         lat = np.asarray(lat_ms) if lat_ms else np.zeros(1)
-        counter = inp._counter
+        counter = inp.counter
         print(json.dumps({
             "messages": n_msgs, "events": n_events, "span_s": last - first,
             "latency_p50_ms": float(np.percentile(lat, 50)), "latency_p99_ms": float(np.percentile(lat, 99)),
@@ -96,6 +96,7 @@ def run_load(events_per_s: float, duration_s: float, endpoint: str) -> dict:
         "offered_achieved_msg_per_s": n / send_s,
         "messages_per_s": got["messages"] / span, "events_per_s": got["events"] / span,
         "received_messages": got["messages"], "lost_messages": n - got["messages"],
+        "receiver_dropped": got["dropped"],
         "latency_p50_ms": got["latency_p50_ms"], "latency_p99_ms": got["latency_p99_ms"],
     }
 

@@ -58,7 +58,8 @@ class Child:
     backoff_i: int = 0
 
     def start(self, t0: float) -> None:
-        self.proc = subprocess.Popen(self.argv, preexec_fn=_die_with_parent)
+        # children write to our stderr: stdout stays for the dashboard URL, which scripts read
+        self.proc = subprocess.Popen(self.argv, preexec_fn=_die_with_parent, stdout=sys.stderr)
         self.started = time.monotonic()
         log.info("started %s (pid %d)", self.name, self.proc.pid)
 

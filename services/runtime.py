@@ -105,7 +105,7 @@ class Input:
                 if self.policy == "latest":
                     self._counter.skipped += 1  # superseded by design, not lost
                 else:
-                    self._counter.dropped += 1
+                    self._counter.overflow += 1
             self._buf.append(item)
             waiter, self._waiter = self._waiter, None
         if waiter is not None:
@@ -145,6 +145,11 @@ class Input:
                 self._waiter = self._loop.create_future()
                 waiter = self._waiter
             await waiter
+
+    @property
+    def counter(self) -> KeyCounter:
+        """This subscription's counts (messages, drops, malformed, latency)."""
+        return self._counter
 
     def pending(self) -> int:
         """Samples received and not yet taken."""

@@ -18,7 +18,8 @@ class KeyCounter:
     direction: str  # "in" or "out"
     messages: int = 0
     events: int = 0
-    dropped: int = 0  # lost: seq gaps and fifo overflow
+    overflow: int = 0  # dropped from a full fifo queue
+    gaps: int = 0  # missing sequence numbers, including the samples `skipped` on purpose
     skipped: int = 0  # superseded unread under the `latest` policy, by design
     malformed: int = 0
     _win_messages: int = 0
@@ -39,8 +40,13 @@ class KeyCounter:
         """Count the messages a gap in one publisher's sequence numbers says were lost."""
         last = self._last_seq.get(source)
         if last is not None and seq > last + 1:
-            self.dropped += seq - last - 1
+            self.gaps += seq - last - 1
         self._last_seq[source] = seq
+
+    @property
+    def dropped(self) -> int:
+        """Messages lost against the subscription's policy: overflow, and gaps not explained by skips."""
+        return self.overflow + max(self.gaps - self.skipped, 0)
 
     def snapshot(self) -> dict:
         """The Stats row of this key; starts a new rate and latency window."""

@@ -109,6 +109,14 @@ def test_key_counter_counts_gaps_and_windows() -> None:
     assert row["dropped"] == 2 and row["messages"] == 4 and row["events"] == 40
     assert row["latency_p50_ms"] == 1.0 and row["msg_rate"] > 0
     assert c.snapshot()["latency_p50_ms"] is None
+    latest = KeyCounter("k", "in")
+    latest.sequence("k", 1)
+    latest.skipped += 3  # superseded on purpose under the `latest` policy
+    latest.sequence("k", 5)
+    assert latest.dropped == 0
+    latest.sequence("k", 7)  # one more missing that nobody skipped: lost
+    latest.overflow += 2
+    assert latest.snapshot()["dropped"] == 3
 
 
 def test_keys_and_config(monkeypatch: pytest.MonkeyPatch) -> None:

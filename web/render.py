@@ -7,8 +7,9 @@ import numpy as np
 
 from services.messages import Stats, Tracks
 
-ON_BGR = np.array([60, 60, 230], np.float32)  # red-ish for ON
-OFF_BGR = np.array([230, 160, 40], np.float32)  # blue-ish for OFF
+# bright enough in luma to survive JPEG's halved chroma resolution
+ON_BGR = np.array([110, 120, 255], np.float32)  # light red for ON
+OFF_BGR = np.array([255, 210, 90], np.float32)  # light blue for OFF
 STATE_NAMES = {0: "new", 1: "", 2: "lost"}
 
 
@@ -22,7 +23,7 @@ def event_frame(events: np.ndarray, width: int, height: int) -> np.ndarray:
         for pol, colour in ((1, ON_BGR), (0, OFF_BGR)):
             sel = ev["p"] == pol
             count = np.bincount(idx[sel], minlength=width * height).reshape(height, width)
-            alpha = np.minimum(count, 4)[..., None] / 4.0
+            alpha = np.minimum(count, 2)[..., None] / 2.0
             img = img * (1 - alpha) + colour * alpha
     return img.astype(np.uint8)
 
@@ -52,11 +53,18 @@ def draw_tracks(img: np.ndarray, tracks: Tracks | None, truth: Tracks | None, sc
     return out
 
 
+def _si(value: float) -> str:
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if value >= scale:
+            return f"{value / scale:.1f}{suffix}"
+    return f"{value:.0f}"
+
+
 def services_markdown(stats: dict[str, Stats], now_s: float, seen_s: dict[str, float]) -> str:
     """A markdown table of live services: inputs and outputs with rates, drops and malformed."""
     if not stats:
         return "*No services seen yet.*"
-    lines = ["| service | key | msg/s | ev/s | dropped | bad | p99 ms |", "|---|---|---:|---:|---:|---:|---:|"]
+    lines = ["| service | key | msg/s | ev/s | lost | bad | p99 ms |", "|---|---|---:|---:|---:|---:|---:|"]
     for who in sorted(stats):
         st = stats[who]
         age = now_s - seen_s.get(who, now_s)
@@ -64,10 +72,10 @@ def services_markdown(stats: dict[str, Stats], now_s: float, seen_s: dict[str, f
         rows = st.keys or [{"key": "-", "dir": "", "msg_rate": 0, "event_rate": 0, "dropped": 0, "malformed": 0,
                             "latency_p99_ms": None}]
         for i, row in enumerate(rows):
-            short = "/".join(str(row["key"]).split("/")[2:])
+            short = "/".join(str(row["key"]).split("/")[2:]).replace("*", "\\*")
             p99 = row.get("latency_p99_ms")
             lines.append(
-                f"| {name if i == 0 else ''} | {row['dir']} {short} | {row['msg_rate']:.0f} | {row['event_rate']:.0f} "
+                f"| {name if i == 0 else ''} | {row['dir']} {short} | {row['msg_rate']:.0f} | {_si(row['event_rate'])} "
                 f"| {row['dropped']} | {row['malformed']} | {'' if p99 is None else f'{p99:.1f}'} |"
             )
     return "\n".join(lines)

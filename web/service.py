@@ -64,10 +64,12 @@ class WebService(Service):
     def _build(self) -> None:
         assert self.server is not None
         gui, scene = self.server.gui, self.server.scene
-        self.server.gui.set_panel_label(f"ETAM · {self.rig}")
+        gui.set_panel_label(f"ETAM · {self.rig}")
+        gui.configure_theme(control_width="large", show_share_button=False)
         scene.set_up_direction("-y")  # the OpenCV camera frame: x right, y down, z forward
         blank = np.zeros((self._size[1] * 2, self._size[0] * 2, 3), np.uint8)
-        self._image = gui.add_image(blank, label="events · tracked (colour) and true (white) boxes", format="jpeg")
+        self._image = gui.add_image(blank, label="events · tracked (colour) and true (white) boxes",
+                                    format="jpeg", jpeg_quality=90)
         self._status = gui.add_markdown("*Waiting for services...*")
         scene.add_grid("/grid", width=10, height=10, plane="xz", position=(0, 1.5, 0))
         scene.add_frame("/world", axes_length=0.3, axes_radius=0.01)
