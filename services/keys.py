@@ -45,3 +45,8 @@ def stats(rig: str = "*") -> str:
 
 def alive(rig: str = "*") -> str:
     return f"{ROOT}/{rig}/*/*/alive"
+
+
+def frames(rig: str = "*") -> str:
+    """Every visualisation Image any service publishes."""
+    return f"{ROOT}/{rig}/*/*/frame"

@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 BACKOFF_S = (0.5, 1.0, 2.0, 4.0, 8.0)
 STABLE_S = 30.0  # a child that ran this long starts again from the shortest backoff
 STOP_GRACE_S = 3.0
+SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop keeps its liveliness token)
 
 
 def _die_with_parent() -> None:
@@ -82,6 +83,15 @@ class Child:
             self.restart_times_s.append(round(now - t0, 3))
             self.start(t0)
 
+    def kill_if_silent(self, last_stats: float | None) -> None:
+        """Kill a child whose Stats stopped (or never came) for SILENT_S; `check` restarts it."""
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        last = max(last_stats or 0.0, self.started)
+        if time.monotonic() - last > SILENT_S:
+            log.warning("%s sent no Stats for %.0f s: it is hung; killing it", self.name, SILENT_S)
+            self.proc.kill()
+
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -106,6 +116,7 @@ class TrafficMonitor:
         self.t0 = time.monotonic()
         self.keys: dict[str, dict[str, Any]] = {}
         self.stats: dict[str, Stats] = {}
+        self.last_stats: dict[str, float] = {}  # service kind -> monotonic time of its latest Stats
         self.malformed = 0
 
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -137,6 +148,7 @@ class TrafficMonitor:
             k["per_second"][second] += 1
             if stats is not None:
                 self.stats[f"{stats.service}/{stats.name}"] = stats
+                self.last_stats[stats.service] = time.monotonic()
 
     def report(self, children: list[Child], duration_s: float) -> dict[str, Any]:
         """The JSON report of `etam up --report`."""
@@ -245,6 +257,7 @@ def up(opts: UpOptions) -> int:
                 break
             for child in children:
                 child.check(t0)
+                child.kill_if_silent(monitor.last_stats.get(child.name))
             if not url_told and time.monotonic() - t0 > 1.0:
                 url = _dashboard_url(session, opts.rig, "localhost")
                 if url:

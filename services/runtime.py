@@ -63,7 +63,8 @@ class Output:
 class Input:
     """A subscription whose samples are iterated as ``(key, message)`` on the asyncio loop.
 
-    Policies: ``latest`` keeps only the newest sample, ``fifo`` keeps `maxsize` and drops the oldest,
+    Policies: ``latest`` keeps only the newest sample of each key (a view of several cameras keeps
+    one per camera), ``fifo`` keeps `maxsize` and drops the oldest,
     ``lossless`` makes zenoh's thread wait for room (so a reliable, blocking publisher slows down
     instead of losing data). Every drop is counted.
     """
@@ -83,9 +84,10 @@ class Input:
         self.policy = policy
         self._loop = loop
         self._expect = expect
-        self._maxsize = 1 if policy == "latest" else max(1, maxsize)
+        self._maxsize = max(1, maxsize)
         self._counter = counter
-        self._buf: collections.deque[tuple[str, bytes, int]] = collections.deque()
+        self._buf: collections.deque[tuple[str, bytes]] = collections.deque()
+        self._latest: dict[str, bytes] = {}  # the `latest` policy's buffer, oldest key first
         self._lock = threading.Lock()
         self._room = threading.Condition(self._lock)
         self._waiter: asyncio.Future[None] | None = None
@@ -95,18 +97,20 @@ class Input:
 
     # zenoh thread -----------------------------------------------------------------------------
     def on_sample(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
         with self._lock:
-            if self.policy == "lossless":
-                while len(self._buf) >= self._maxsize and not self._closed:
-                    self._room.wait(0.1)
-            elif len(self._buf) >= self._maxsize:
-                self._buf.popleft()
-                if self.policy == "latest":
+            if self.policy == "latest":
+                if self._latest.pop(key, None) is not None:
                     self._counter.skipped += 1  # superseded by design, not lost
-                else:
+                self._latest[key] = payload
+            else:
+                if self.policy == "lossless":
+                    while len(self._buf) >= self._maxsize and not self._closed:
+                        self._room.wait(0.1)
+                elif len(self._buf) >= self._maxsize:
+                    self._buf.popleft()
                     self._counter.overflow += 1
-            self._buf.append(item)
+                self._buf.append((key, payload))
             waiter, self._waiter = self._waiter, None
         if waiter is not None:
             self._loop.call_soon_threadsafe(_wake, waiter)
@@ -117,8 +121,7 @@ class Input:
 
     async def __anext__(self) -> tuple[str, Message]:
         while True:
-            item = await self._next_raw()
-            key, payload, recv_ns = item
+            key, payload = await self._next_raw()
             try:
                 msg = decode(payload, self._expect)
             except MessageError as exc:
@@ -132,9 +135,12 @@ class Input:
             self._counter.count(msg.event_count(), (time.time_ns() - msg.sent) / 1e6 if msg.sent else None)
             return key, msg
 
-    async def _next_raw(self) -> tuple[str, bytes, int]:
+    async def _next_raw(self) -> tuple[str, bytes]:
         while True:
             with self._lock:
+                if self._latest:
+                    key = next(iter(self._latest))
+                    return key, self._latest.pop(key)
                 if self._buf:
                     item = self._buf.popleft()
                     if self.policy == "lossless":
@@ -150,10 +156,6 @@ class Input:
     def counter(self) -> KeyCounter:
         """This subscription's counts (messages, drops, malformed, latency)."""
         return self._counter
-
-    def pending(self) -> int:
-        """Samples received and not yet taken."""
-        return len(self._buf)
 
     def close(self) -> None:
         with self._lock:

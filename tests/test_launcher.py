@@ -99,3 +99,23 @@ def test_launcher_killed_hard_leaves_no_orphans(tmp_path: Path, rig: str) -> Non
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=20)
     wait_for(lambda: not _rig_processes(rig), 10, "the services to follow their launcher")
+
+
+@pytest.mark.slow
+def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, rig: str) -> None:
+    report_path = tmp_path / "r.json"
+    proc = _up(rig, report_path, 35)
+    try:
+        tracker = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline()], 20, "the tracker")[0]
+        time.sleep(3)
+        tracker.suspend()  # alive, liveliness token still held, but doing nothing: hung
+        wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != tracker.pid],
+                 25, "a replacement for the hung tracker")
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "tracker sent no Stats" in err
+    report = json.loads(report_path.read_text())
+    assert report["services"]["tracker"]["restarts"] == 1

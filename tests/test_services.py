@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
+import sys
 import threading
 import time
 import urllib.request
@@ -14,8 +15,10 @@ import pytest
 import zenoh
 
 from services.config import ZenohSettings
-from services.messages import EVENT_DTYPE, CameraInfo, Command, EventPacket, Reply, Stats, Tracks, decode
-from tests.conftest import etam_argv, free_port, spawn, wait_for
+from services.messages import (
+    EVENT_DTYPE, CameraInfo, Command, EventPacket, Image, Reply, Stats, Tracks, decode, image_to_array,
+)
+from tests.conftest import ROOT, etam_argv, free_port, spawn, wait_for
 
 ROOT_ARGS = ("--log-level", "WARNING")
 
@@ -42,11 +45,16 @@ class Collector:
 
 
 def _query(session: zenoh.Session, key: str, request: Command | None = None):  # noqa: ANN202
+    """The first reply on `key`, asking again until the service is up."""
     payload = request.encode() if request is not None else None
-    for reply in session.get(key, payload=payload, timeout=5.0):
-        if reply.ok is not None:
-            return decode(reply.ok.payload.to_bytes())
-    raise AssertionError(f"no reply on {key}")
+
+    def ask() -> object:
+        for reply in session.get(key, payload=payload, timeout=2.0):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes())
+        return None
+
+    return wait_for(ask, 20, f"a reply on {key}")
 
 
 def test_camera_tracker_and_subscriber_processes(router: str, rig: str) -> None:
@@ -163,3 +171,18 @@ def test_bad_flags_give_clear_errors(tmp_path) -> None:  # noqa: ANN001
     assert up.returncode == 2 and "--duration" in up.stderr
     flag = subprocess.run(etam_argv("up", "--frobnicate"), capture_output=True, text=True, timeout=30)
     assert flag.returncode == 2 and "frobnicate" in flag.stderr
+
+
+def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str) -> None:
+    plugin = subprocess.Popen([sys.executable, "examples/heatmap_plugin.py", "--connect", router, "--rig", rig],
+                              cwd=ROOT, start_new_session=True)
+    try:
+        with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS), _session(router) as s:
+            frames = Collector(s, f"etam/{rig}/heatmap/heatmap/frame")
+            got = wait_for(lambda: frames.of(Image), 30, "a heat-map frame")
+            frames.sub.undeclare()
+        pixels = image_to_array(got[-1])
+        assert pixels.shape == (260, 346, 3) and pixels.max() > 0
+    finally:
+        plugin.terminate()
+        plugin.wait(10)

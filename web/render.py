@@ -1,4 +1,6 @@
-"""Pictures for the dashboard: event frames with boxes, the service table (pure numpy / cv2)."""
+"""Pictures for the dashboard: event frames with boxes, the service table (pure numpy / cv2).
+
+Images here are RGB, as the browser shows them."""
 
 from __future__ import annotations
 
@@ -8,19 +10,19 @@ import numpy as np
 from services.messages import Stats, Tracks
 
 # bright enough in luma to survive JPEG's halved chroma resolution
-ON_BGR = np.array([110, 120, 255], np.float32)  # light red for ON
-OFF_BGR = np.array([255, 210, 90], np.float32)  # light blue for OFF
+ON_RGB = np.array([255, 120, 110], np.float32)  # light red for ON
+OFF_RGB = np.array([90, 210, 255], np.float32)  # light blue for OFF
 STATE_NAMES = {0: "new", 1: "", 2: "lost"}
 
 
 def event_frame(events: np.ndarray, width: int, height: int) -> np.ndarray:
-    """A BGR image of the events: ON red, OFF blue, brighter with more events, on dark grey."""
+    """An RGB image of the events: ON red, OFF blue, brighter with more events, on dark grey."""
     img = np.full((height, width, 3), 30, np.float32)
     if len(events):
         inside = (events["x"] < width) & (events["y"] < height)
         ev = events[inside]
         idx = ev["y"].astype(np.int64) * width + ev["x"]
-        for pol, colour in ((1, ON_BGR), (0, OFF_BGR)):
+        for pol, colour in ((1, ON_RGB), (0, OFF_RGB)):
             sel = ev["p"] == pol
             count = np.bincount(idx[sel], minlength=width * height).reshape(height, width)
             alpha = np.minimum(count, 2)[..., None] / 2.0
@@ -30,8 +32,8 @@ def event_frame(events: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def _colour(ident: int) -> tuple[int, int, int]:
     hue = (ident * 47) % 180
-    bgr = cv2.cvtColor(np.uint8([[[hue, 200, 255]]]), cv2.COLOR_HSV2BGR)[0, 0]
-    return int(bgr[0]), int(bgr[1]), int(bgr[2])
+    rgb = cv2.cvtColor(np.uint8([[[hue, 200, 255]]]), cv2.COLOR_HSV2RGB)[0, 0]
+    return int(rgb[0]), int(rgb[1]), int(rgb[2])
 
 
 def draw_tracks(img: np.ndarray, tracks: Tracks | None, truth: Tracks | None, scale: int = 2) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 import viser
 
 from services import keys
-from services.messages import EVENT_DTYPE, CameraInfo, EventPacket, Stats, Tracks
+from services.messages import EVENT_DTYPE, CameraInfo, EventPacket, Image, MessageError, Stats, Tracks, image_to_array
 from services.runtime import Service, ServiceOptions
 from web.render import draw_tracks, event_frame, services_markdown
 
@@ -34,6 +34,7 @@ class WebService(Service):
         self._info: CameraInfo | None = None
         self._stats: dict[str, Stats] = {}
         self._seen: dict[str, float] = {}
+        self._frames: dict[str, viser.GuiImageHandle] = {}
 
     @property
     def url(self) -> str:
@@ -56,6 +57,7 @@ class WebService(Service):
                 self._pump(self.subscribe(keys.key(rig, "camera", "*", "info"), CameraInfo, policy="latest"),
                            self._on_info),
                 self._pump(self.subscribe(keys.stats(rig), Stats, policy="fifo", maxsize=256), self._on_stats),
+                self._pump(self.subscribe(keys.frames(rig), Image, policy="latest"), self._on_frame),
                 self._render_loop(),
             )
         finally:
@@ -71,6 +73,7 @@ class WebService(Service):
         self._image = gui.add_image(blank, label="events · tracked (colour) and true (white) boxes",
                                     format="jpeg", jpeg_quality=90)
         self._status = gui.add_markdown("*Waiting for services...*")
+        self._frames_folder = gui.add_folder("Frames from other services")
         scene.add_grid("/grid", width=10, height=10, plane="xz", position=(0, 1.5, 0))
         scene.add_frame("/world", axes_length=0.3, axes_radius=0.01)
         self._frustum = scene.add_camera_frustum("/cam0", fov=np.deg2rad(58), aspect=346 / 260, scale=0.4,
@@ -96,6 +99,24 @@ class WebService(Service):
             self._frustum.fov = float(fov)
             self._frustum.aspect = msg.width / msg.height
         self._info = msg
+
+    def _on_frame(self, key: str, msg: Image) -> None:
+        """Any service's ``.../frame`` Image gets a panel of its own, made on first sight."""
+        try:
+            pixels = image_to_array(msg)
+        except MessageError as exc:
+            log.warning("frame on %s does not decode: %s", key, exc)
+            return
+        if pixels.ndim == 3:
+            pixels = np.ascontiguousarray(pixels[..., ::-1])  # BGR (OpenCV's order) to RGB
+        handle = self._frames.get(key)
+        if handle is None:
+            assert self.server is not None
+            with self._frames_folder:
+                handle = self._frames[key] = self.server.gui.add_image(
+                    pixels, label="/".join(key.split("/")[2:4]), format="jpeg", jpeg_quality=85)
+        else:
+            handle.image = pixels
 
     def _on_stats(self, _key: str, msg: Stats) -> None:
         who = f"{msg.service}/{msg.name}"
