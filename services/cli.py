@@ -89,14 +89,15 @@ def _cmd_up(args: argparse.Namespace) -> int:
 def _cmd_router(args: argparse.Namespace) -> int:
     import zenoh
 
-    settings = config.resolve("router", None, args.listen or ["tcp/0.0.0.0:7447"], False, args.zenoh_config)
+    default_listen = [] if args.zenoh_config else ["tcp/0.0.0.0:7447"]
+    settings = config.resolve("router", None, args.listen or default_listen, None, args.zenoh_config)
     stop = threading.Event()
     import signal
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with zenoh.open(settings.zenoh_config()):
-        log.info("zenoh router listening on %s", ", ".join(settings.listen))
+        log.info("zenoh router listening on %s", ", ".join(settings.listen) or f"the endpoints of {args.zenoh_config}")
         stop.wait()
     return 0
 

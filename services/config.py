@@ -23,7 +23,7 @@ TRANSPORT_DEFAULTS = {
     "transport/link/tx/queue/congestion_control/drop/wait_before_drop": 50_000,
     "transport/link/tx/queue/size/data": 16,
 }
-"""Zenoh transport settings ETAM uses when no config file is given (a config file is taken as is)."""
+"""Zenoh transport settings ETAM uses when no config file is given (a config file's own are kept)."""
 
 
 class ConfigError(ValueError):
@@ -34,15 +34,15 @@ class ConfigError(ValueError):
 class ZenohSettings:
     """Where and how a process joins the zenoh network."""
 
-    mode: str = "peer"  # peer, client or router
+    mode: str | None = None  # peer, client or router; None: the file's, else peer
     connect: list[str] = field(default_factory=list)
     listen: list[str] = field(default_factory=list)
-    multicast: bool = False
+    multicast: bool | None = None  # None: the file's, else off
     config_file: str | None = None
 
     def zenoh_config(self) -> zenoh.Config:
-        """The zenoh.Config these settings describe."""
-        if self.mode not in ("peer", "client", "router"):
+        """The zenoh.Config these settings describe: the file (or ETAM's defaults), then the settings."""
+        if self.mode not in (None, "peer", "client", "router"):
             raise ConfigError(f"mode: {self.mode!r} is not one of peer, client, router")
         if self.config_file:
             path = Path(self.config_file)
@@ -54,15 +54,17 @@ class ZenohSettings:
                 raise ConfigError(f"config file {path}: {exc}") from None
         else:
             conf = zenoh.Config()
-            for path, value in TRANSPORT_DEFAULTS.items():
+            for path, value in {**TRANSPORT_DEFAULTS, "mode": "peer", "scouting/multicast/enabled": False}.items():
                 conf.insert_json5(path, json.dumps(value))
         try:
-            conf.insert_json5("mode", json.dumps(self.mode))
+            if self.mode is not None:
+                conf.insert_json5("mode", json.dumps(self.mode))
             if self.connect:
                 conf.insert_json5("connect/endpoints", json.dumps(self.connect))
             if self.listen:
                 conf.insert_json5("listen/endpoints", json.dumps(self.listen))
-            conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
+            if self.multicast is not None:
+                conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
         except Exception as exc:
             raise ConfigError(f"zenoh settings {self}: {exc}") from None
         return conf
@@ -89,9 +91,9 @@ def resolve(
     """Settings from flags (given here) over environment (ETAM_MODE, ETAM_CONNECT, ETAM_LISTEN,
     ETAM_MULTICAST, ETAM_ZENOH_CONFIG) over defaults."""
     env = os.environ
-    env_multicast = env.get("ETAM_MULTICAST", "").lower() in ("1", "true", "yes", "on")
+    env_multicast = env["ETAM_MULTICAST"].lower() in ("1", "true", "yes", "on") if "ETAM_MULTICAST" in env else None
     return ZenohSettings(
-        mode=mode or env.get("ETAM_MODE") or "peer",
+        mode=mode or env.get("ETAM_MODE") or None,
         connect=[_endpoint(c) for c in (connect or _split(env.get("ETAM_CONNECT")))],
         listen=[_endpoint(c) for c in (listen or _split(env.get("ETAM_LISTEN")))],
         multicast=env_multicast if multicast is None else multicast,

@@ -127,7 +127,7 @@ def test_keys_and_config(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("ETAM_CONNECT", "10.0.0.2,tcp/10.0.0.3:9000")
     monkeypatch.setenv("ETAM_MODE", "client")
     s = config.resolve()
-    assert s.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:9000"] and s.mode == "client" and not s.multicast
+    assert s.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:9000"] and s.mode == "client"
     assert config.resolve(connect=["host:1"]).connect == ["tcp/host:1"]  # flags win over env
     conf = s.zenoh_config()
     assert "false" in conf.get_json("scouting/multicast/enabled")
@@ -142,3 +142,19 @@ def test_unknown_sources_are_named() -> None:
         open_source("sim:nowhere")
     with pytest.raises(SourceError, match="recording.aedat4"):
         open_source("recording.aedat4")
+
+
+def test_dashboard_table_lists_services_keys_and_losses() -> None:
+    from services.messages import Stats
+    from web.render import services_markdown
+
+    row = {"key": "etam/r/camera/cam0/events", "dir": "out", "messages": 10, "events": 5, "msg_rate": 1000.0,
+           "event_rate": 2.5e5, "dropped": 0, "skipped": 0, "malformed": 0, "latency_p50_ms": None,
+           "latency_p99_ms": None}
+    sub = {**row, "key": "etam/r/camera/*/events", "dir": "in", "dropped": 7, "malformed": 3, "latency_p99_ms": 1.25}
+    stats = {"camera/cam0": Stats(service="camera", name="cam0", cpu_percent=50, rss_bytes=2**20 * 100, keys=[row]),
+             "tracker/objects": Stats(service="tracker", name="objects", keys=[sub])}
+    text = services_markdown(stats, now_s=10.0, seen_s={"camera/cam0": 9.5, "tracker/objects": 1.0})
+    assert "| → events | 1000 | 250.0k | 0 | 0 |  |" in text
+    assert "| ← camera/\\*/events | 1000 | 250.0k | 7 | 3 | 1.2 |" in text
+    assert "**tracker/objects** · 0% cpu · 0 MB · **silent**" in text and "camera/cam0** · 50% cpu · 100 MB |" in text

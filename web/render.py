@@ -7,6 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from services import keys
 from services.messages import Stats, Tracks
 
 # bright enough in luma to survive JPEG's halved chroma resolution
@@ -62,22 +63,30 @@ def _si(value: float) -> str:
     return f"{value:.0f}"
 
 
+def _short_key(key: str, who: str) -> str:
+    """A service's own key as its topic (``events``); any other without ``etam/<rig>/``."""
+    parts = keys.parse(key)
+    if parts is not None and f"{parts[1]}/{parts[2]}" == who:
+        return parts[3]
+    return "/".join(key.split("/")[2:]).replace("*", "\\*")
+
+
 def services_markdown(stats: dict[str, Stats], now_s: float, seen_s: dict[str, float]) -> str:
-    """A markdown table of live services: inputs and outputs with rates, drops and malformed."""
+    """A markdown table of live services: a line per service, then its inputs and outputs with
+    rates, lost messages, malformed ones and latency."""
     if not stats:
         return "*No services seen yet.*"
-    lines = ["| service | key | msg/s | ev/s | lost | bad | p99 ms |", "|---|---|---:|---:|---:|---:|---:|"]
+    lines = ["| key | msg/s | ev/s | lost | bad | p99 ms |", "|---|---:|---:|---:|---:|---:|"]
     for who in sorted(stats):
         st = stats[who]
-        age = now_s - seen_s.get(who, now_s)
-        name = f"**{who}**" + (" (silent)" if age > 3 else "") + f"<br>{st.cpu_percent:.0f}% cpu, {st.rss_bytes / 2**20:.0f} MB"
-        rows = st.keys or [{"key": "-", "dir": "", "msg_rate": 0, "event_rate": 0, "dropped": 0, "malformed": 0,
-                            "latency_p99_ms": None}]
-        for i, row in enumerate(rows):
-            short = "/".join(str(row["key"]).split("/")[2:]).replace("*", "\\*")
+        silent = " · **silent**" if now_s - seen_s.get(who, now_s) > 3 else ""
+        lines.append(f"| **{who}** · {st.cpu_percent:.0f}% cpu · {st.rss_bytes / 2**20:.0f} MB{silent} ||||||")
+        for row in st.keys:
             p99 = row.get("latency_p99_ms")
+            arrow = "→" if row["dir"] == "out" else "←"
             lines.append(
-                f"| {name if i == 0 else ''} | {row['dir']} {short} | {row['msg_rate']:.0f} | {_si(row['event_rate'])} "
-                f"| {row['dropped']} | {row['malformed']} | {'' if p99 is None else f'{p99:.1f}'} |"
+                f"| {arrow} {_short_key(str(row['key']), who)} "
+                f"| {row['msg_rate']:.0f} | {_si(row['event_rate'])} | {row['dropped']} | {row['malformed']} "
+                f"| {'' if p99 is None else f'{p99:.1f}'} |"
             )
     return "\n".join(lines)

@@ -1,0 +1,59 @@
+"""deploy/: the units start real commands, the zenoh configs load, the router config serves a rig."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from services.cli import build_parser
+from services.config import ZenohSettings
+from tests.conftest import ROOT, etam_argv, free_port, spawn, wait_for
+
+DEPLOY = ROOT / "deploy"
+
+
+def _env() -> dict[str, str]:
+    out = {}
+    for line in (DEPLOY / "etam.env").read_text().splitlines():
+        if line and not line.startswith("#"):
+            k, _, v = line.partition("=")
+            out[k] = v
+    return out
+
+
+@pytest.mark.parametrize("unit", sorted(p.name for p in (DEPLOY / "systemd").glob("*.service")))
+def test_every_unit_runs_a_valid_etam_command(unit: str) -> None:
+    text = (DEPLOY / "systemd" / unit).read_text()
+    exec_start = re.search(r"^ExecStart=(.+)$", text, re.M).group(1)
+    env = _env()
+    argv = shlex.split(re.sub(r"\$\{(\w+)\}", lambda m: env[m.group(1)], exec_start))
+    assert argv[0] == "/opt/etam/venv/bin/etam"
+    args = build_parser().parse_args(argv[1:])  # exits (fails the test) on a wrong flag
+    assert args.command == unit.removeprefix("etam-").removesuffix(".service")
+    assert re.search(rf"Wants=.*{unit}", (DEPLOY / "systemd" / "etam.target").read_text())
+
+
+def test_install_script_is_valid_bash() -> None:
+    subprocess.run(["bash", "-n", str(DEPLOY / "install.sh")], check=True)
+
+
+@pytest.mark.parametrize("name", ["router.json5", "ground-station.json5"])
+def test_zenoh_configs_load(name: str) -> None:
+    conf = ZenohSettings(config_file=str(DEPLOY / "zenoh" / name)).zenoh_config()
+    assert "false" in conf.get_json("scouting/multicast/enabled")
+
+
+def test_router_config_serves_a_rig(tmp_path: Path, rig: str) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "router.json5"
+    config.write_text((DEPLOY / "zenoh" / "router.json5").read_text().replace("tcp/0.0.0.0:7447", endpoint))
+    with spawn("router", "--zenoh-config", str(config)), spawn("camera", "--connect", endpoint, "--rig", rig):
+        def heard() -> bool:
+            out = subprocess.run(etam_argv("echo", f"etam/{rig}/camera/cam0/info", "--count", "1", "--timeout", "5",
+                                           "--connect", endpoint), cwd=ROOT, capture_output=True, text=True, timeout=30)
+            return out.returncode == 0 and "CameraInfo" in out.stdout
+        wait_for(heard, 30, "CameraInfo through the deployed router config", period_s=0.5)
