@@ -31,7 +31,7 @@ def test_dashboard_shows_live_services_events_and_boxes(rig: str, tmp_path) -> N
             text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
                             and all(s in t for s in ("camera/cam0", "tracker/objects", "web/web")) and t,
                             60, "all three services in the dashboard table", period_s=1.0)
-            assert f"ETAM · {rig}" in text and "tracker/objects/tracks" in text
+            assert f"ETAM · {rig}" in text and "→ tracks" in text and "→ events" in text
             assert browser.evaluate("document.querySelectorAll('canvas').length") >= 1  # the 3D scene
             assert browser.evaluate("Array.from(document.images).some(i => i.src.startsWith('blob:') "
                                     "&& i.naturalWidth >= 346)")  # the live event image
