@@ -97,7 +97,10 @@ class Input:
 
     # zenoh thread -----------------------------------------------------------------------------
     def on_sample(self, sample: zenoh.Sample) -> None:
-        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        self.push(str(sample.key_expr), sample.payload.to_bytes())
+
+    def push(self, key: str, payload: bytes) -> None:
+        """Queue one payload by the policy (any thread); wakes the loop if it waits."""
         with self._lock:
             if self.policy == "latest":
                 if self._latest.pop(key, None) is not None:

@@ -1,0 +1,97 @@
+"""The subscription queue policies of DESIGN.md section 6, fed from a foreign thread as zenoh does."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+
+from services.messages import EVENT_DTYPE, EventPacket, Tracks
+from services.runtime import Input
+from services.stats import KeyCounter
+
+
+def _packet(seq: int, n: int = 3) -> bytes:
+    return EventPacket(seq=seq, stamp=seq * 1000, width=8, height=8, events=np.zeros(n, EVENT_DTYPE)).encode()
+
+
+async def _drain(inp: Input, n: int) -> list[tuple[str, int]]:
+    out = []
+    for _ in range(n):
+        key, msg = await asyncio.wait_for(inp.__anext__(), 5)
+        out.append((key, msg.seq))
+    return out
+
+
+def _input(policy: str, maxsize: int = 4, expect: type | None = EventPacket) -> Input:
+    return Input(asyncio.get_running_loop(), "k/*", expect, policy, maxsize, KeyCounter("k/*", "in"))
+
+
+def test_fifo_drops_the_oldest_and_counts_it() -> None:
+    async def main() -> None:
+        inp = _input("fifo", maxsize=4)
+        for seq in range(1, 11):
+            inp.push("k/a", _packet(seq))
+        assert await _drain(inp, 4) == [("k/a", s) for s in (7, 8, 9, 10)]
+        assert inp.counter.overflow == 6 and inp.counter.dropped == 6  # the gap 1..6 is the overflow
+        assert inp.counter.events == 12
+
+    asyncio.run(main())
+
+
+def test_latest_keeps_the_newest_per_key_without_counting_loss() -> None:
+    async def main() -> None:
+        inp = _input("latest")
+        for seq in range(1, 6):
+            inp.push("k/a", _packet(seq))
+            inp.push("k/b", _packet(seq))
+        got = await _drain(inp, 2)
+        assert sorted(got) == [("k/a", 5), ("k/b", 5)]
+        assert inp.counter.skipped == 8 and inp.counter.dropped == 0
+
+    asyncio.run(main())
+
+
+def test_lossless_blocks_the_producer_instead_of_dropping() -> None:
+    async def main() -> None:
+        inp = _input("lossless", maxsize=2)
+        done = threading.Event()
+
+        def produce() -> None:  # zenoh's thread: must wait for room, never drop
+            for seq in range(1, 21):
+                inp.push("k/a", _packet(seq))
+            done.set()
+
+        threading.Thread(target=produce, daemon=True).start()
+        await asyncio.sleep(0.3)
+        assert not done.is_set()  # blocked on the full queue
+        got = await _drain(inp, 20)
+        assert [s for _, s in got] == list(range(1, 21))
+        assert inp.counter.dropped == 0
+
+    asyncio.run(main())
+
+
+def test_wakes_a_waiting_consumer_from_another_thread_and_skips_malformed() -> None:
+    async def main() -> None:
+        inp = _input("fifo", maxsize=64)
+
+        def produce() -> None:
+            time.sleep(0.2)
+            inp.push("k/a", b"\x00garbage")
+            inp.push("k/a", Tracks.from_boxes(0, [], []).encode())  # valid, wrong type
+            inp.push("k/a", _packet(1))
+
+        threading.Thread(target=produce, daemon=True).start()
+        assert await _drain(inp, 1) == [("k/a", 1)]
+        assert inp.counter.malformed == 2
+        inp.close()
+        try:
+            await asyncio.wait_for(inp.__anext__(), 2)
+            raise AssertionError("a closed, empty input must end the iteration")
+        except StopAsyncIteration:
+            pass
+
+    asyncio.run(main())
