@@ -24,7 +24,8 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 def _zenoh_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
     g.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help=f"endpoint to join, e.g. tcp/HOST:7447 (repeatable; env ETAM_CONNECT; default {DEFAULT_CONNECT})")
+                   help=f"endpoint to join, e.g. tcp/HOST:7447 (repeatable; env ETAM_CONNECT; "
+                        f"default {DEFAULT_CONNECT})")
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (env ETAM_LISTEN)")
     g.add_argument("--mode", choices=("peer", "client"), help="zenoh mode (env ETAM_MODE; default peer)")
     g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file; flags override it")

@@ -105,7 +105,7 @@ def _decode_array(raw: Any, spec: Spec, where: str) -> np.ndarray:
 def _check_shape(shape: tuple[int, ...], spec: Spec, where: str) -> None:
     if spec.shape is None:
         return
-    if len(shape) != len(spec.shape) or any(w is not None and w != n for w, n in zip(spec.shape, shape)):
+    if len(shape) != len(spec.shape) or any(w is not None and w != n for w, n in zip(spec.shape, shape, strict=True)):
         want = tuple("N" if w is None else w for w in spec.shape)
         raise MessageError(f"{where}: shape {shape} where {want} is required")
 
@@ -152,7 +152,8 @@ class Message:
     sent: int = _spec("int", 0)
 
     def encode(self) -> bytes:
-        """msgpack bytes of this message; `sent` is filled with the wall clock when left at 0."""
+        """msgpack bytes of this message (`sent` set to the wall clock if 0); MessageError if a value
+        cannot travel (an integer beyond 64 bits, an arbitrary object)."""
         body: dict[str, Any] = {"type": self.TYPE, "v": self.VERSION}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
@@ -161,7 +162,10 @@ class Message:
             body[f.name] = value
         if not body["sent"]:
             body["sent"] = time.time_ns()
-        return msgpack.packb(body, default=_pack_default, use_bin_type=True)
+        try:
+            return msgpack.packb(body, default=_pack_default, use_bin_type=True)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise MessageError(f"{self.TYPE}: cannot encode ({exc})") from None
 
     def event_count(self) -> int:
         """Events carried (EventPacket) or items (Tracks, PointCloud); 0 for other messages."""
@@ -453,4 +457,5 @@ def image_to_array(msg: Image) -> np.ndarray:
     n = msg.width * msg.height
     if n == 0 or pixels.size not in (n, 3 * n):
         raise MessageError(f"Image.data: {pixels.size} values do not fit {msg.width}x{msg.height}")
-    return pixels.reshape(msg.height, msg.width, -1).squeeze(-1) if pixels.size == n else pixels.reshape(msg.height, msg.width, 3)
+    channels = pixels.size // n
+    return pixels.reshape(msg.height, msg.width) if channels == 1 else pixels.reshape(msg.height, msg.width, 3)

@@ -25,6 +25,10 @@ def _rig_processes(rig: str) -> list[psutil.Process]:
     return out
 
 
+def _trackers(rig: str, other_than: int | None = None) -> list[psutil.Process]:
+    return [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != other_than]
+
+
 def _up(rig: str, report: Path, duration: float, *extra: str) -> subprocess.Popen:
     return subprocess.Popen(
         etam_argv("up", "--duration", str(duration), "--no-web", "--report", str(report), "--rig", rig,
@@ -58,12 +62,11 @@ def test_killed_tracker_is_restarted_within_five_seconds(tmp_path: Path, rig: st
     report_path = tmp_path / "r.json"
     proc = _up(rig, report_path, 15)
     try:
-        tracker = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline()], 20, "the tracker")[0]
+        tracker = wait_for(lambda: _trackers(rig), 20, "the tracker")[0]
         time.sleep(2)
         tracker.kill()
         killed_at = time.monotonic()
-        new = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != tracker.pid],
-                       10, "a new tracker process")
+        new = wait_for(lambda: _trackers(rig, other_than=tracker.pid), 10, "a new tracker process")
         restart_s = time.monotonic() - killed_at
         out, err = proc.communicate(timeout=60)
     finally:
@@ -106,11 +109,10 @@ def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, r
     report_path = tmp_path / "r.json"
     proc = _up(rig, report_path, 35)
     try:
-        tracker = wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline()], 20, "the tracker")[0]
+        tracker = wait_for(lambda: _trackers(rig), 20, "the tracker")[0]
         time.sleep(3)
         tracker.suspend()  # alive, liveliness token still held, but doing nothing: hung
-        wait_for(lambda: [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != tracker.pid],
-                 25, "a replacement for the hung tracker")
+        wait_for(lambda: _trackers(rig, other_than=tracker.pid), 25, "a replacement for the hung tracker")
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:

@@ -71,7 +71,7 @@ MESSAGES = st.one_of(
               cpu_percent=floats, keys=st.lists(st.fixed_dictionaries(
                   {k: st.integers(0, 100) for k in m.Stats.ROW_FIELDS}), max_size=3)),
     st.builds(m.Command, **header(), op=st.text(max_size=10),
-              args=st.none() | st.dictionaries(st.text(max_size=5), st.integers() | st.text(max_size=5), max_size=3)),
+              args=st.none() | st.dictionaries(st.text(max_size=5), ints | st.text(max_size=5), max_size=3)),
     st.builds(m.Reply, **header(), ok=st.booleans(), error=st.text(max_size=20)),
 )
 
@@ -166,6 +166,13 @@ def test_missing_field_and_inconsistent_lengths_are_named() -> None:
     bad.score = np.ones(3, "<f4")
     with pytest.raises(MessageError, match="differ in length"):
         decode(bad.encode())
+
+
+def test_values_that_cannot_travel_raise_message_error_on_encode() -> None:
+    with pytest.raises(MessageError, match="Command: cannot encode"):
+        m.Command(op="set", args={"big": 2**70}).encode()
+    with pytest.raises(MessageError, match="Command: cannot encode"):
+        m.Command(op="set", args={"obj": object()}).encode()
 
 
 def test_expect_rejects_other_types() -> None:

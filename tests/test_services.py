@@ -11,7 +11,6 @@ import time
 import urllib.request
 
 import numpy as np
-import pytest
 import zenoh
 
 from services.config import ZenohSettings

@@ -45,7 +45,7 @@ def draw_tracks(img: np.ndarray, tracks: Tracks | None, truth: Tracks | None, sc
             x, y, w, h = (box * scale).astype(int)
             cv2.rectangle(out, (x, y), (x + w, y + h), (235, 235, 235), 1)
     if tracks is not None:
-        for ident, box, state in zip(tracks.id, tracks.box, tracks.state):
+        for ident, box, state in zip(tracks.id, tracks.box, tracks.state, strict=True):
             if state == 0:
                 continue
             x, y, w, h = (box * scale).astype(int)

@@ -38,7 +38,7 @@ class Packetizer:
         cuts = np.searchsorted(self._buf["t"], ends, side="left")  # slice k holds t in [end_k - slice, end_k)
         out: list[tuple[int, np.ndarray]] = []
         start = 0
-        for end, cut in zip(ends.tolist(), cuts.tolist()):
+        for end, cut in zip(ends.tolist(), cuts.tolist(), strict=True):
             part = self._buf[start:cut]
             chunks = [part[i:i + self.max_events] for i in range(0, max(len(part), 1), self.max_events)]
             out.extend((int(c["t"][-1]), c) for c in chunks[:-1])

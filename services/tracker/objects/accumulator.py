@@ -34,7 +34,8 @@ class DecayedAccumulator:
             ev = ev[inside]
             weights = np.exp(-np.maximum(t_us - ev["t"], 0) / self.tau_us)
             idx = ev["y"].astype(np.int64) * self.width + ev["x"]
-            self.image += np.bincount(idx, weights, self.width * self.height).reshape(self.image.shape).astype(np.float32)
+            counts = np.bincount(idx, weights, self.width * self.height)
+            self.image += counts.reshape(self.image.shape).astype(np.float32)
         self.t_us = t_us
         return self.image
 

@@ -31,5 +31,5 @@ def detect_clusters(image: np.ndarray, params: ClusterParams) -> tuple[np.ndarra
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= params.min_area_px) + 1
     boxes = stats[keep, :4].astype(np.float32)
-    mass = np.bincount(labels.ravel(), image.ravel(), n)[keep].astype(np.float32) if len(keep) else np.zeros(0, np.float32)
+    mass = np.bincount(labels.ravel(), image.ravel(), n)[keep].astype(np.float32)
     return boxes, mass
