@@ -80,10 +80,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level,
     )
-    if args.source.startswith("sim:"):
-        from services.camera.sources import open_source  # fail here, not in a restart loop
+    from services.camera.sources import open_source
 
-        open_source(args.source)
+    open_source(args.source)  # a bad source fails here, before anything starts
     return up(opts)
 
 
@@ -227,7 +226,10 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except KeyboardInterrupt:
         return 130
-    except (config.ConfigError, SourceError, OSError, ZError, ValueError) as exc:
+    except ZError as exc:
+        print(f"etam {args.command}: {config.zenoh_reason(exc)}", file=sys.stderr)
+        return 2
+    except (config.ConfigError, SourceError, OSError, ValueError) as exc:
         print(f"etam {args.command}: {exc}", file=sys.stderr)
         return 2
 

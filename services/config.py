@@ -51,7 +51,7 @@ class ZenohSettings:
             try:
                 conf = zenoh.Config.from_file(str(path))
             except Exception as exc:  # zenoh raises ZError with the parser's message
-                raise ConfigError(f"config file {path}: {exc}") from None
+                raise ConfigError(f"config file {path}: {zenoh_reason(exc)}") from None
         else:
             conf = zenoh.Config()
             for path, value in {**TRANSPORT_DEFAULTS, "mode": "peer", "scouting/multicast/enabled": False}.items():
@@ -66,8 +66,13 @@ class ZenohSettings:
             if self.multicast is not None:
                 conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
         except Exception as exc:
-            raise ConfigError(f"zenoh settings {self}: {exc}") from None
+            raise ConfigError(f"zenoh settings {self}: {zenoh_reason(exc)}") from None
         return conf
+
+
+def zenoh_reason(exc: Exception) -> str:
+    """zenoh's error text without the Rust source locations it appends."""
+    return str(exc).split(" at /", 1)[0].replace("[", "").strip()
 
 
 def _split(value: str | None) -> list[str]:

@@ -24,13 +24,14 @@ import msgpack
 import zenoh
 
 from services import keys
-from services.config import ZenohSettings
+from services.config import ZenohSettings, zenoh_reason
 from services.messages import Command, MessageError, Reply, Stats, decode
 
 log = logging.getLogger(__name__)
 
 BACKOFF_S = (0.5, 1.0, 2.0, 4.0, 8.0)
 STABLE_S = 30.0  # a child that ran this long starts again from the shortest backoff
+USAGE_ERROR = 2  # a child's exit code for a bad flag, source or config: restarting cannot help
 STOP_GRACE_S = 3.0
 SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop keeps its liveliness token)
 
@@ -64,12 +65,17 @@ class Child:
         self.started = time.monotonic()
         log.info("started %s (pid %d)", self.name, self.proc.pid)
 
-    def check(self, t0: float) -> None:
-        """Start again a child that exited, after its backoff."""
+    def check(self, t0: float) -> bool:
+        """Start again a child that exited, after its backoff; False if it cannot run at all."""
         now = time.monotonic()
         if self.proc is not None and self.proc.poll() is not None:
             code = self.proc.returncode
             self.exit_codes.append(code)
+            if code == USAGE_ERROR:
+                log.error("%s cannot start with this configuration (see its message above); not restarting",
+                          self.name)
+                self.proc = None
+                return False
             if now - self.started > STABLE_S:
                 self.backoff_i = 0
             delay = BACKOFF_S[min(self.backoff_i, len(BACKOFF_S) - 1)]
@@ -82,6 +88,7 @@ class Child:
             self.restarts += 1
             self.restart_times_s.append(round(now - t0, 3))
             self.start(t0)
+        return True
 
     def kill_if_silent(self, last_stats: float | None) -> None:
         """Kill a child whose Stats stopped (or never came) for SILENT_S; `check` restarts it."""
@@ -238,8 +245,9 @@ def up(opts: UpOptions) -> int:
     try:
         session = zenoh.open(router_conf)
     except zenoh.ZError as exc:
-        log.error("cannot start the zenoh router on %s: %s (is another `etam up` running?)", opts.listen, exc)
-        return 2
+        log.error("cannot start the zenoh router on %s: %s (is another `etam up` running?)", opts.listen,
+                  zenoh_reason(exc))
+        return USAGE_ERROR
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -251,12 +259,16 @@ def up(opts: UpOptions) -> int:
     for child in children:
         child.start(t0)
     url_told = not opts.web
+    code = 0
     try:
         while not stop.is_set():
             if opts.duration_s is not None and time.monotonic() - t0 >= opts.duration_s:
                 break
             for child in children:
-                child.check(t0)
+                if not child.check(t0):
+                    code = USAGE_ERROR
+                    stop.set()
+                    break
                 child.kill_if_silent(monitor.last_stats.get(child.name))
             if not url_told and time.monotonic() - t0 > 1.0:
                 url = _dashboard_url(session, opts.rig, "localhost")
@@ -279,4 +291,4 @@ def up(opts: UpOptions) -> int:
     if opts.report is not None:
         opts.report.write_text(json.dumps(report, indent=2))
         log.info("report written to %s", opts.report)
-    return 0
+    return code

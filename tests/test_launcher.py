@@ -121,3 +121,15 @@ def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, r
     assert "tracker sent no Stats" in err
     report = json.loads(report_path.read_text())
     assert report["services"]["tracker"]["restarts"] == 1
+
+
+def test_a_service_that_cannot_start_stops_the_rig_with_its_reason(tmp_path: Path, rig: str) -> None:
+    proc = subprocess.Popen(
+        etam_argv("up", "--duration", "60", "--no-web", "--rig", rig, "--listen", f"tcp/127.0.0.1:{free_port()}"),
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "ETAM_ZENOH_CONFIG": str(tmp_path / "missing.json5")},
+    )
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert "missing.json5 does not exist" in err and "not restarting" in err and "Traceback" not in err
+    assert not _rig_processes(rig)
