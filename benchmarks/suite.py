@@ -76,8 +76,10 @@ def format_results(results: dict) -> str:
     """A human-readable table per benchmark."""
     lines = [f"machine: {results['machine']}"]
     for row in results.get("transport", []):
+        offered = row["offered_events_per_s"]
+        offered = "  max" if offered == "max" else f"{offered / 1e6:5.1f}"
         lines.append(
-            f"transport  offered {row['offered_events_per_s'] / 1e6:5.1f} Mev/s "
+            f"transport  offered {offered} Mev/s "
             f"({row['events_per_packet']} ev/packet): {row['messages_per_s']:7.0f} msg/s "
             f"{row['events_per_s'] / 1e6:6.2f} Mev/s delivered, lost {row['lost_messages']}, "
             f"latency p50 {row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms")

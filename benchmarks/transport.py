@@ -61,9 +61,11 @@ def _sink_main(endpoint: str) -> int:
     return Sink(opts).run()
 
 
-def run_load(events_per_s: float, duration_s: float, endpoint: str) -> dict:
-    """Offer `events_per_s` in 1 ms packets for `duration_s`; the receiver's figures."""
-    per_packet = int(round(events_per_s / 1000))
+def run_load(events_per_s: float | None, duration_s: float, endpoint: str, saturate_per_packet: int = 20_000) -> dict:
+    """Offer `events_per_s` in 1 ms packets for `duration_s`, or with None send packets of
+    `saturate_per_packet` events as fast as the sender can (capacity); the receiver's figures."""
+    paced = events_per_s is not None
+    per_packet = int(round(events_per_s / 1000)) if paced else saturate_per_packet
     rng = np.random.default_rng(0)
     ev = np.zeros(per_packet, EVENT_DTYPE)
     ev["x"], ev["y"] = rng.integers(0, 346, per_packet), rng.integers(0, 260, per_packet)
@@ -79,7 +81,7 @@ def run_load(events_per_s: float, duration_s: float, endpoint: str) -> dict:
             t0 = time.perf_counter()
             for i in range(n):
                 wait = t0 + i / 1000 - time.perf_counter()
-                if wait > 0:
+                if paced and wait > 0:
                     time.sleep(wait)
                 ev["t"] = i * 1000 + np.arange(per_packet) * 1000 // max(per_packet, 1)
                 pub.put(EventPacket(seq=i + 1, stamp=(i + 1) * 1000, width=346, height=260, events=ev).encode())
@@ -92,7 +94,8 @@ def run_load(events_per_s: float, duration_s: float, endpoint: str) -> dict:
     got = json.loads(out.strip().splitlines()[-1])
     span = max(got["span_s"], 1e-6)
     return {
-        "offered_events_per_s": events_per_s, "events_per_packet": per_packet, "sent_messages": n,
+        "offered_events_per_s": events_per_s if paced else "max", "events_per_packet": per_packet,
+        "sent_messages": n,
         "offered_achieved_msg_per_s": n / send_s,
         "messages_per_s": got["messages"] / span, "events_per_s": got["events"] / span,
         "received_messages": got["messages"], "lost_messages": n - got["messages"],
@@ -107,8 +110,8 @@ def _free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def run(loads: tuple[float, ...] = (1e6, 5e6, 20e6), duration_s: float = 3.0) -> list[dict]:
-    """One result per offered load (events/s)."""
+def run(loads: tuple[float | None, ...] = (1e6, 5e6, 20e6, None), duration_s: float = 3.0) -> list[dict]:
+    """One result per offered load (events/s; None: as fast as possible)."""
     return [run_load(load, duration_s, _free_endpoint()) for load in loads]
 
 
