@@ -210,6 +210,9 @@ class Service:
         """This instance's key for `topic`, e.g. ``etam/<rig>/tracker/objects/tracks``."""
         return keys.key(self.rig, self.kind, self.name, topic)
 
+    def _full_key(self, topic_or_key: str) -> str:
+        return topic_or_key if topic_or_key.startswith(keys.ROOT + "/") else self.key(topic_or_key)
+
     def publisher(self, topic_or_key: str, *, block: bool = False, express: bool = False) -> Output:
         """A typed publisher on this service's `topic` (or on a full key starting with ``etam/``).
 
@@ -217,7 +220,7 @@ class Service:
             block: congestion control BLOCK (wait for slow reliable subscribers) instead of DROP.
             express: send at once without batching (small, latency-critical messages).
         """
-        keyexpr = topic_or_key if topic_or_key.startswith(keys.ROOT + "/") else self.key(topic_or_key)
+        keyexpr = self._full_key(topic_or_key)
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         pub = self._session().declare_publisher(keyexpr, congestion_control=congestion, express=express)
         self._declared.append(pub)
@@ -241,7 +244,7 @@ class Service:
 
     def serve(self, topic_or_key: str, handler: Callable[[Message | None], Message]) -> None:
         """Answer queries on `topic` with ``handler(decoded query payload or None)``, run on the loop."""
-        keyexpr = topic_or_key if topic_or_key.startswith(keys.ROOT + "/") else self.key(topic_or_key)
+        keyexpr = self._full_key(topic_or_key)
         loop = self._loop
         assert loop is not None
 
