@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import psutil
+import zenoh
 import pytest
 
 from tests.conftest import ROOT, etam_argv, free_port, wait_for
@@ -133,3 +134,32 @@ def test_a_service_that_cannot_start_stops_the_rig_with_its_reason(tmp_path: Pat
     assert proc.returncode == 2
     assert "missing.json5 does not exist" in err and "not restarting" in err and "Traceback" not in err
     assert not _rig_processes(rig)
+
+
+@pytest.mark.slow
+def test_tracking_resumes_after_the_camera_restarts(tmp_path: Path, rig: str) -> None:
+    from services.config import ZenohSettings
+    from services.messages import Tracks, decode
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen(etam_argv("up", "--duration", "25", "--no-web", "--rig", rig, "--listen", endpoint,
+                                      "--log-level", "WARNING"), cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    stamps: list[int] = []
+    try:
+        camera = wait_for(lambda: [p for p in _rig_processes(rig) if "camera" in p.cmdline()], 20, "camera")[0]
+        with zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config()) as session:
+            sub = session.declare_subscriber(f"etam/{rig}/tracker/objects/tracks",
+                                             lambda s: stamps.append(decode(s.payload.to_bytes(), Tracks).t))
+            wait_for(lambda: len(stamps) > 200, 20, "tracks before the restart")
+            camera.kill()
+            wait_for(lambda: any(b < a for a, b in zip(stamps, stamps[1:])), 15, "tracks from the new camera")
+            restart = next(i for i, (a, b) in enumerate(zip(stamps, stamps[1:])) if b < a) + 1
+            wait_for(lambda: len(stamps) > restart + 100, 15, "steady tracks after the restart")
+            sub.undeclare()
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    after = stamps[restart:]
+    assert after[0] < 1_000_000 and after == sorted(after)  # the new camera's clock, in order
