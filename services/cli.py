@@ -14,6 +14,7 @@ from pathlib import Path
 from zenoh import ZError
 
 from services import config
+from services.camera.formats import FormatError
 from services.camera.sources import SourceError
 
 log = logging.getLogger("etam")
@@ -53,9 +54,11 @@ def _cmd_camera(args: argparse.Namespace) -> int:
     from services.camera.service import CameraService
     from services.camera.sources import open_source
 
-    source = open_source(args.source, seed=args.seed)
+    if args.rate < 0:
+        raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
+    source = open_source(args.source, seed=args.seed, loop=args.loop)
     opts = _service_options(args, "cam0")
-    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events).run()
+    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events, rate=args.rate).run()
 
 
 def _cmd_tracker(args: argparse.Namespace) -> int:
@@ -78,10 +81,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
     opts = UpOptions(
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
-        log_level=args.log_level,
+        log_level=args.log_level, camera_args=(("--rate", str(args.rate)) + (("--loop",) if args.loop else ())),
     )
     from services.camera.sources import open_source
 
+    if args.rate < 0:
+        raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     open_source(args.source)  # a bad source fails here, before anything starts
     return up(opts)
 
@@ -136,6 +141,29 @@ def _cmd_hz(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from services.camera.offline import simulate
+
+    if args.duration <= 0:
+        raise config.ConfigError(f"--duration must be positive, got {args.duration}")
+    summary = simulate(args.scene, Path(args.out), args.duration, args.seed, progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
+          f"({args.duration} s, seed {args.seed}) and {summary['truth_boxes']} truth boxes to {args.out}")
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from services.camera.offline import describe
+
+    facts = describe(Path(args.file), progress=not args.json)
+    if args.json:
+        print(json.dumps(facts))
+    else:
+        for k, v in facts.items():
+            print(f"{k:>14}: {v}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from benchmarks import suite
 
@@ -149,7 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run the whole rig (router, camera, tracker, dashboard)")
-    p.add_argument("--source", default="sim:objects", help="event source (default sim:objects)")
+    p.add_argument("--source", default="sim:objects", help="event source: sim:objects (default) or a recording")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed of a recording (0: as fast as possible)")
+    p.add_argument("--loop", action="store_true", help="play a recording again and again")
     p.add_argument("--rig", help="rig name (env ETAM_RIG; default: host name)")
     p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")
@@ -168,7 +198,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("camera", help="run the camera service alone")
     _zenoh_flags(p)
     p.add_argument("--name", help="camera name in keys (default cam0)")
-    p.add_argument("--source", default="sim:objects", help="sim:objects (default)")
+    p.add_argument("--source", default="sim:objects", help="sim:objects (default) or a recording's path")
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="playback speed of a recording: 1 real time (default), 2 twice as fast, 0 as fast as possible")
+    p.add_argument("--loop", action="store_true", help="play a recording again and again")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
     p.add_argument("--slice-us", type=int, default=1000, help="packet time slice in us (default 1000)")
     p.add_argument("--max-events", type=int, default=100_000, help="largest packet (default 100000)")
@@ -207,6 +240,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="one JSON object per report")
     p.set_defaults(func=_cmd_hz)
 
+    p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth")
+    p.add_argument("scene", choices=("objects",), help="scene to simulate")
+    p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
+    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
+    p.set_defaults(func=_cmd_sim)
+
+    p = sub.add_parser("info", help="sensor size, events, duration, rate, polarity, IMU and truth of a file")
+    p.add_argument("file", help="an event file or ECD folder")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_info)
+
     p = sub.add_parser("bench", help="run the performance suite")
     p.add_argument("--json", action="store_true", help="machine-readable results on stdout")
     p.add_argument("--quick", action="store_true", help="shorter runs (for smoke tests)")
@@ -229,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     except ZError as exc:
         print(f"etam {args.command}: {config.zenoh_reason(exc)}", file=sys.stderr)
         return 2
-    except (config.ConfigError, SourceError, OSError, ValueError) as exc:
+    except (config.ConfigError, SourceError, FormatError, OSError, ValueError) as exc:
         print(f"etam {args.command}: {exc}", file=sys.stderr)
         return 2
 

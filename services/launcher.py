@@ -204,6 +204,7 @@ class UpOptions:
     report: Path | None = None
     services: tuple[str, ...] = ("camera", "tracker")
     log_level: str = "INFO"
+    camera_args: tuple[str, ...] = ()
 
 
 def _local_endpoint(listen: str) -> str:
@@ -218,7 +219,7 @@ def _children(opts: UpOptions) -> list[Child]:
     common = ["--rig", opts.rig, "--connect", _local_endpoint(opts.listen), "--log-level", opts.log_level]
     out = []
     for name in opts.services:
-        extra = ["--source", opts.source] if name == "camera" else []
+        extra = ["--source", opts.source, *opts.camera_args] if name == "camera" else []
         out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra]))
     if opts.web:
         out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)]))

@@ -51,6 +51,16 @@ class Output:
     def key(self) -> str:
         return self._counter.key
 
+    @property
+    def counter(self) -> KeyCounter:
+        """What this publisher sent (messages, events)."""
+        return self._counter
+
+    @property
+    def matched(self) -> bool:
+        """Whether any subscriber anywhere listens to this key now."""
+        return bool(self._publisher.matching_status.matching)
+
     def publish(self, msg: Message) -> None:
         """Stamp `seq` and `sent`, encode and send."""
         self._seq += 1
@@ -357,7 +367,7 @@ class Service:
             uptime_s=time.monotonic() - self._started,
             cpu_percent=self._process.cpu_percent(None),
             rss_bytes=int(mem.rss),
-            keys=[c.snapshot() for c in self._counters if c is not self._stats_out._counter],
+            keys=[c.snapshot() for c in self._counters if c is not self._stats_out.counter],
         )
 
     async def _stats_loop(self) -> None:

@@ -1,4 +1,4 @@
-"""The camera service: plays an event source in real time as EventPackets, with CameraInfo and truth."""
+"""The camera service: plays an event source as EventPackets, with CameraInfo and ground truth."""
 
 from __future__ import annotations
 
@@ -13,50 +13,77 @@ from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
 
+FAST_STEP_US = 20_000  # sensor time per step when playing as fast as possible (`rate` 0)
+
 
 class CameraService(Service):
     """Publishes ``camera/<cam>/events`` (1 ms slices), ``info`` (each second and as a query) and
-    ``truth/boxes`` when the source has ground truth."""
+    ``truth/boxes`` when the source has ground truth.
+
+    `rate` 1 plays in real time, 2 twice as fast, 0 as fast as the source and the network allow
+    (then it waits for a first subscriber, and publishers block rather than drop, so a subscriber
+    that keeps up gets every event).
+    """
 
     kind = "camera"
 
     def __init__(self, options: ServiceOptions, source: EventSource, slice_us: int = 1000,
-                 max_events: int = 100_000, tick_s: float = 0.005, truth_hz: float = 50.0) -> None:
+                 max_events: int = 100_000, rate: float = 1.0, tick_s: float = 0.005) -> None:
         super().__init__(options)
+        if rate < 0:
+            raise ValueError(f"rate must be >= 0, got {rate}")
         self.source = source
         self.packetizer = Packetizer(slice_us, max_events)
-        self.tick_s = tick_s
-        self.truth_period_us = int(1e6 / truth_hz)
+        self.rate, self.tick_s = rate, tick_s
+        self.status["source"] = source.name
 
     def info(self) -> CameraInfo:
-        return CameraInfo(width=self.source.width, height=self.source.height, K=self.source.K)
+        return CameraInfo(width=self.source.width, height=self.source.height, K=self.source.K,
+                          source=self.source.name)
 
     async def main(self) -> None:
-        events = self.publisher("events")
+        fast = self.rate == 0
+        self._events = self.publisher("events", block=fast)
+        self._truth = self.publisher("truth/boxes", block=fast)
         info = self.publisher("info")
-        truth = self.publisher("truth/boxes")
         self.serve("info", lambda _req: self.info())
         info.publish(self.info())
         await asyncio.sleep(0)
-        start = time.monotonic()
-        sensor_us = next_info_us = next_truth_us = 0
-        paused_us = 0
+        if fast:  # as fast as possible is only useful to someone listening from the start
+            log.info("waiting for a subscriber to %s", self._events.key)
+            while not self._events.matched:
+                await asyncio.sleep(0.05)
+        src = self.source
+        sensor_us = src.start_us
+        wall0, sensor0 = time.monotonic(), sensor_us
+        next_info = time.monotonic() + 1.0
         while True:
-            await asyncio.sleep(self.tick_s)
-            if self.paused:
-                paused_us = int((time.monotonic() - start) * 1e6) - sensor_us
-                continue
-            now_us = int((time.monotonic() - start) * 1e6) - paused_us
-            self.packetizer.accept(self.source.advance(now_us))
-            for stamp, chunk in self.packetizer.generate(now_us):
-                events.publish(EventPacket(stamp=stamp, width=self.source.width, height=self.source.height,
-                                           events=chunk))
-            while next_truth_us <= now_us:
-                boxes = self.source.truth_boxes(next_truth_us)
-                if boxes is not None:
-                    truth.publish(Tracks.from_boxes(next_truth_us, *boxes))
-                next_truth_us += self.truth_period_us
-            if now_us >= next_info_us:
+            await asyncio.sleep(0 if fast and not src.done else self.tick_s)
+            if time.monotonic() >= next_info:
                 info.publish(self.info())
-                next_info_us = now_us + 1_000_000
-            sensor_us = now_us
+                next_info += 1.0
+            if self.paused or src.done:
+                wall0, sensor0 = time.monotonic(), sensor_us  # resume from here, not in a rush
+                continue
+            until = sensor_us + FAST_STEP_US if fast else sensor0 + int((time.monotonic() - wall0) * 1e6 * self.rate)
+            self._play(sensor_us, until)
+            sensor_us = until
+            if src.done:
+                self._play(sensor_us, sensor_us + self.packetizer.slice_us)  # flush the last slice
+                self._report_end()
+
+    def _play(self, since_us: int, until_us: int) -> None:
+        """Publish the events and truth of (since_us, until_us]."""
+        self.packetizer.accept(self.source.advance(until_us))
+        w, h = self.source.width, self.source.height
+        for stamp, chunk in self.packetizer.generate(until_us):
+            self._events.publish(EventPacket(stamp=stamp, width=w, height=h, events=chunk))
+        for t_us, ids, boxes in self.source.truth(since_us, until_us):
+            self._truth.publish(Tracks.from_boxes(t_us, ids, boxes))
+
+    def _report_end(self) -> None:
+        error = getattr(self.source, "error", None)
+        if error is not None:
+            log.error("stopped playing: %s (every event before it was published)", error)
+        else:
+            log.info("end of %s: %d events published", self.source.name, self._events.counter.events)

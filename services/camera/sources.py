@@ -1,71 +1,147 @@
-"""Event sources the camera service can play: the built-in simulator (files and USB come later).
+"""Event sources the camera service plays: the built-in simulator and recorded files.
 
-A source is pure: ``advance(until_us)`` returns the events up to that sensor time, ``truth(t_us)``
-the ground-truth boxes if it has any. The service decides the pacing.
+A source is pure: ``advance(until_us)`` returns the events up to that sensor time (us) and
+``truth(since_us, until_us)`` the ground-truth boxes in that span; ``done`` says a file has ended.
+The service decides the pacing (real time, faster, or as fast as possible).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
+from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.simulator import EventSimulator, ObjectsScene
+from services.messages import EVENT_DTYPE
+
+TRUTH_PERIOD_US = 20_000  # the simulator's boxes at 50 Hz
 
 
 class SourceError(ValueError):
     """A source that cannot be opened; the text names it and says why."""
 
 
+TruthBoxes = tuple[int, np.ndarray, np.ndarray]  # t_us, ids, boxes (x, y, w, h)
+
+
 class EventSource(Protocol):
+    name: str
     width: int
     height: int
     K: np.ndarray
+    start_us: int
+    done: bool
 
     def advance(self, until_us: int) -> np.ndarray: ...
 
-    def truth_boxes(self, t_us: int) -> tuple[np.ndarray, np.ndarray] | None: ...
+    def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]: ...
 
 
-@dataclass
 class SimSource:
     """`sim:objects`: the simulator's static-camera scene with moving objects and truth boxes."""
 
-    scene: ObjectsScene
-    sim: EventSimulator
+    done = False
+    start_us = 0
 
-    @property
-    def width(self) -> int:
-        return self.scene.width
-
-    @property
-    def height(self) -> int:
-        return self.scene.height
-
-    @property
-    def K(self) -> np.ndarray:
-        f = self.scene.focal_px
-        return np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
+    def __init__(self, scene: ObjectsScene, sim: EventSimulator, name: str) -> None:
+        self.scene, self.sim, self.name = scene, sim, name
+        self.width, self.height = scene.width, scene.height
+        f = scene.focal_px
+        self.K = np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
 
     def advance(self, until_us: int) -> np.ndarray:
         return self.sim.advance(until_us)
 
-    def truth_boxes(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
-        return self.scene.boxes(t_us)
+    def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
+        first = (since_us // TRUTH_PERIOD_US + 1) * TRUTH_PERIOD_US
+        return [(t, *self.scene.boxes(t)) for t in range(first, until_us + 1, TRUTH_PERIOD_US)]
+
+
+class FileSource:
+    """Plays a recording; with `loop` it starts again, shifted in time so that time keeps rising."""
+
+    def __init__(self, recording: Recording, loop: bool = False) -> None:
+        self.recording, self.loop = recording, loop
+        self.name = str(recording.path)
+        self.width, self.height = recording.width, recording.height
+        self.K = recording.K_or_default()
+        self._chunks = recording.chunks()
+        self._pending = np.empty(0, EVENT_DTYPE)
+        self._shift_us = 0
+        self._loaded_us: int | None = None  # time of the last event loaded, shifted
+        self.done = False
+        self.error: FormatError | None = None  # a fault in the file, met after the good events before it
+        self._fill()
+        self.start_us = int(self._pending["t"][0]) if len(self._pending) else 0
+        boxes = recording.truth.boxes
+        self._truth_rows = boxes[np.argsort(boxes[:, 0], kind="stable")] if boxes is not None else None
+
+    def _fill(self) -> bool:
+        """Load the next chunk into the pending buffer; False at the end of the file or at a fault."""
+        try:
+            chunk = next(self._chunks, None)
+        except FormatError as exc:
+            self.error = exc
+            return False
+        if chunk is None:
+            if not self.loop or self._loaded_us is None:
+                return False
+            self._shift_us = self._loaded_us + 1 - self.start_us  # the next lap starts just after
+            self._chunks = self.recording.chunks()
+            chunk = next(self._chunks, None)
+            if chunk is None:
+                return False
+        if self._shift_us:
+            chunk = chunk.copy()
+            chunk["t"] += self._shift_us
+        if len(chunk):
+            self._loaded_us = int(chunk["t"][-1])
+        self._pending = np.concatenate([self._pending, chunk]) if len(self._pending) else chunk
+        return True
+
+    def advance(self, until_us: int) -> np.ndarray:
+        out = []
+        while True:
+            cut = int(np.searchsorted(self._pending["t"], until_us, side="right"))
+            out.append(self._pending[:cut])
+            self._pending = self._pending[cut:]
+            if len(self._pending):
+                break
+            if not self._fill():
+                self.done = True
+                break
+        return np.concatenate(out) if len(out) > 1 else out[0]
+
+    def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
+        if self._truth_rows is None:
+            return []
+        rows = self._truth_rows
+        t = rows[:, 0] + self._shift_us
+        sel = rows[(t > since_us) & (t <= until_us)]
+        return [(int(tu) + self._shift_us, sel[sel[:, 0] == tu, 1].astype(np.int32), sel[sel[:, 0] == tu, 2:6])
+                for tu in np.unique(sel[:, 0])]
 
 
 SIM_SCENES = ("objects",)
 
 
-def open_source(spec: str, seed: int = 0, width: int = 346, height: int = 260) -> EventSource:
-    """Open a source from its command-line name (``sim:objects``, ...)."""
+def open_source(spec: str, seed: int = 0, loop: bool = False) -> EventSource:
+    """Open a source from its command-line name: ``sim:objects``, or the path of a recording."""
     if spec.startswith("sim:"):
         scene = spec[4:]
         if scene == "objects":
-            sc = ObjectsScene(width, height, seed=seed)
-            return SimSource(sc, EventSimulator(sc, seed=seed))
+            sc = ObjectsScene(seed=seed)
+            return SimSource(sc, EventSimulator(sc, seed=seed), spec)
         raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                           f"{', '.join('sim:' + s for s in SIM_SCENES)})")
-    raise SourceError(f"source {spec!r}: only the simulator ({', '.join('sim:' + s for s in SIM_SCENES)}) "
-                      "is available in this version; files and USB cameras are not supported yet")
+    if spec == "usb" or spec.startswith("usb:"):
+        raise SourceError(f"source {spec!r}: USB cameras are not supported yet")
+    if not Path(spec).exists():
+        raise SourceError(f"source {spec!r}: no such file, and not a known source "
+                          f"({', '.join('sim:' + s for s in SIM_SCENES)}, or a recording's path)")
+    try:
+        return FileSource(open_recording(spec), loop=loop)
+    except FormatError as exc:
+        raise SourceError(f"source {spec!r}: {exc}") from None

@@ -1,0 +1,30 @@
+"""Event file readers and writers (DESIGN.md section 7), chosen by content rather than extension."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from services.camera.formats import ecd, hdf5
+from services.camera.formats.recording import Calibration, FormatError, Recording, Truth
+
+__all__ = ["Calibration", "FormatError", "Recording", "Truth", "open_recording", "SUPPORTED"]
+
+SUPPORTED = "ETAM/DSEC HDF5, ECD text"
+
+
+def open_recording(path: str | Path) -> Recording:
+    """Open any supported event file or ECD folder, detecting the format from its first bytes."""
+    path = Path(path)
+    if not path.exists():
+        raise FormatError(path, "no such file or folder")
+    if path.is_dir():
+        return ecd.EcdRecording(path)
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if not head:
+        raise FormatError(path, "the file is empty")
+    if head.startswith(hdf5.MAGIC):
+        return hdf5.H5Recording(path)
+    if ecd.looks_like(head):
+        return ecd.EcdRecording(path)
+    raise FormatError(path, f"unknown event file format (first bytes {head[:16]!r}); readable: {SUPPORTED}")

@@ -1,0 +1,106 @@
+"""ETAM HDF5 (DESIGN.md section 7), read and written, and DSEC-style HDF5, read.
+
+ETAM: `/events/{t,x,y,p}`, root attributes width/height, optional `/calibration` and `/truth`.
+DSEC: `events/{x,y,t,p}` with `t_offset` (us) added to t; sensor size 640x480 unless attributes say.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from services.camera.formats.recording import CHUNK_EVENTS, Calibration, FormatError, Recording, events_from_columns
+
+MAGIC = b"\x89HDF\r\n\x1a\n"
+DSEC_SIZE = (640, 480)
+
+
+class H5Recording(Recording):
+    """ETAM or DSEC HDF5; the layout is told by the datasets present."""
+
+    format = "hdf5"
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise FormatError(self.path, f"not a readable HDF5 file ({exc})") from None
+        f = self._file
+        if "events" not in f or not all(k in f["events"] for k in "txyp"):
+            raise FormatError(self.path, "no events/{t,x,y,p} datasets")
+        self._t_offset = int(f["t_offset"][()]) if "t_offset" in f else 0
+        self.format = "dsec-hdf5" if "t_offset" in f or "ms_to_idx" in f else "etam-hdf5"
+        self.width = int(f.attrs.get("width", DSEC_SIZE[0] if self.format == "dsec-hdf5" else 0))
+        self.height = int(f.attrs.get("height", DSEC_SIZE[1] if self.format == "dsec-hdf5" else 0))
+        self.n_events = len(f["events/t"])
+        lengths = {k: len(f["events"][k]) for k in "txyp"}
+        if len(set(lengths.values())) != 1:
+            raise FormatError(self.path, f"events columns differ in length: {lengths}")
+        if not self.width or not self.height:
+            self.width = int(f["events/x"][:].max()) + 1 if self.n_events else 1
+            self.height = int(f["events/y"][:].max()) + 1 if self.n_events else 1
+        if "calibration/K" in f:
+            dist = f["calibration/dist"] if "calibration/dist" in f else None
+            self.calibration = Calibration(
+                np.asarray(f["calibration/K"][:], np.float64),
+                str(dist.attrs.get("model", "radtan")) if dist is not None else "none",
+                np.asarray(dist[:], np.float64) if dist is not None else np.zeros(0),
+            )
+        for name in ("poses", "boxes", "omega"):
+            if f"truth/{name}" in f:
+                setattr(self.truth, name, np.asarray(f[f"truth/{name}"][:]))
+
+    def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
+        ev = self._file["events"]
+        for start in range(0, self.n_events, max_events):
+            stop = min(start + max_events, self.n_events)
+            t = ev["t"][start:stop].astype(np.int64) + self._t_offset
+            yield events_from_columns(t, ev["x"][start:stop], ev["y"][start:stop], ev["p"][start:stop])
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class H5Writer:
+    """Appends events (and at the end calibration and truth) to an ETAM HDF5 file."""
+
+    def __init__(self, path: str | Path, width: int, height: int) -> None:
+        self.path = Path(path)
+        self._file = h5py.File(self.path, "w")
+        self._file.attrs["width"], self._file.attrs["height"] = width, height
+        grp = self._file.create_group("events")
+        self._cols = {
+            name: grp.create_dataset(name, (0,), dtype=dtype, maxshape=(None,), chunks=(CHUNK_EVENTS,))
+            for name, dtype in (("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1"))
+        }
+        self.count = 0
+
+    def write(self, events: np.ndarray) -> None:
+        n = len(events)
+        if not n:
+            return
+        for name, ds in self._cols.items():
+            ds.resize((self.count + n,))
+            ds[self.count:] = events[name]
+        self.count += n
+
+    def write_calibration(self, calib: Calibration) -> None:
+        self._file["calibration/K"] = np.asarray(calib.K, np.float64)
+        self._file["calibration/dist"] = np.asarray(calib.dist, np.float64)
+        self._file["calibration/dist"].attrs["model"] = calib.dist_model
+
+    def write_truth(self, name: str, rows: np.ndarray) -> None:
+        self._file[f"truth/{name}"] = rows
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> H5Writer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

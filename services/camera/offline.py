@@ -1,0 +1,63 @@
+"""Offline camera commands: `etam sim` (simulate to a file) and `etam info` (what a file holds)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from services.camera.formats import Calibration, open_recording
+from services.camera.formats.hdf5 import H5Writer
+from services.camera.sources import SimSource, open_source
+
+STEP_US = 100_000
+
+
+def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: bool = True) -> dict[str, Any]:
+    """Simulate `scene` for `duration_s` into an ETAM HDF5 file with its ground truth."""
+    source = open_source(f"sim:{scene}", seed=seed)
+    assert isinstance(source, SimSource)
+    end_us = int(duration_s * 1e6)
+    boxes = []
+    with H5Writer(out, source.width, source.height) as writer, \
+            tqdm(total=end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
+        writer.write_calibration(Calibration(source.K))
+        for since in range(0, end_us, STEP_US):
+            until = min(since + STEP_US, end_us)
+            writer.write(source.advance(until))
+            for t_us, ids, bxs in source.truth(since, until):
+                boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
+            bar.update((until - since) // 1000)
+        writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
+        count = writer.count
+    return {"file": str(out), "scene": scene, "events": count, "duration_s": duration_s, "seed": seed,
+            "truth_boxes": len(boxes)}
+
+
+def describe(path: Path, progress: bool = True) -> dict[str, Any]:
+    """Sensor size, events, duration, rate, polarity balance, IMU and ground truth of a file."""
+    with open_recording(path) as rec:
+        n = on = 0
+        t0 = t1 = None
+        with tqdm(unit="ev", unit_scale=True, desc=path.name, disable=not progress) as bar:
+            for chunk in rec.chunks():
+                if not len(chunk):
+                    continue
+                t0 = int(chunk["t"][0]) if t0 is None else t0
+                t1 = int(chunk["t"][-1])
+                n += len(chunk)
+                on += int(chunk["p"].sum())
+                bar.update(len(chunk))
+        imu = rec.imu()
+        duration = (t1 - t0) / 1e6 if n else 0.0
+        return {
+            "file": str(path), "format": rec.format, "width": rec.width, "height": rec.height,
+            "events": n, "t_first_us": t0, "t_last_us": t1, "duration_s": duration,
+            "event_rate": n / duration if duration > 0 else None,
+            "on_fraction": on / n if n else None,
+            "imu_samples": 0 if imu is None else len(imu[0]),
+            "calibrated": rec.calibration is not None,
+            "ground_truth": rec.truth.present(),
+        }

@@ -1,0 +1,161 @@
+"""File readers and writers: real recordings decode to their documented counts; faults are named."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from services.camera.formats import Calibration, FormatError, open_recording
+from services.camera.formats.hdf5 import H5Writer
+from services.camera.sources import FileSource, SourceError, open_source
+from services.messages import EVENT_DTYPE
+from tests.conftest import SHARED, etam_argv
+
+REAL = SHARED / "data" / "real"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is absent")
+ECD = sorted(p.name for p in (REAL / "ecd_cuts_eventstppp").glob("*/")) if REAL.is_dir() else []
+
+
+def _events(n: int, t0: int = 0) -> np.ndarray:
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = t0 + np.arange(n) * 10
+    ev["x"], ev["y"], ev["p"] = np.arange(n) % 50, np.arange(n) % 40, np.arange(n) % 2
+    return ev
+
+
+@needs_real
+@pytest.mark.parametrize("seq", ECD)
+def test_ecd_sequences_decode_to_the_documented_counts(seq: str) -> None:
+    with open_recording(REAL / "ecd_cuts_eventstppp" / seq) as rec:
+        ev = rec.read_all()
+        assert rec.format == "ecd-text" and (rec.width, rec.height) == (240, 180)
+        assert rec.calibration is not None and rec.calibration.K[0, 0] == pytest.approx(199.092366542)
+        assert rec.calibration.dist_model == "radtan" and len(rec.calibration.dist) == 5
+    assert len(ev) == 30_000
+    assert np.all(np.diff(ev["t"]) >= 0) and 5_000 <= ev["t"][-1] - ev["t"][0] <= 110_000
+    assert ev["x"].max() < 240 and ev["y"].max() < 180 and set(np.unique(ev["p"])) == {0, 1}
+
+
+@needs_real
+def test_ecd_text_matches_a_plain_parse_of_the_same_lines() -> None:
+    path = REAL / "ecd_cuts_eventstppp" / "shapes_rotation" / "events.txt"
+    rows = np.loadtxt(path)
+    ev = open_recording(path).read_all()
+    assert np.array_equal(ev["t"], np.round(rows[:, 0] * 1e6).astype(np.int64))
+    assert np.array_equal(ev["x"], rows[:, 1]) and np.array_equal(ev["p"], rows[:, 3])
+
+
+def test_corrupt_ecd_line_is_named_with_its_byte_offset_after_the_good_events(tmp_path: Path) -> None:
+    good = "".join(f"{i * 1e-5:.9f} {i % 240} {i % 180} {i % 2}\n" for i in range(1000))
+    (tmp_path / "events.txt").write_text(good + "0.5 12 oops 1\n" + good)
+    rec = open_recording(tmp_path)
+    got = []
+    with pytest.raises(FormatError, match=rf"events.txt at byte {len(good)}: bad line b'0.5 12 oops 1'"):
+        for chunk in rec.chunks(max_events=100):
+            got.append(chunk)
+    assert sum(map(len, got)) == 1000  # every good event before the fault was delivered
+
+
+def test_h5_writer_round_trip_with_calibration_and_truth(tmp_path: Path) -> None:
+    ev = _events(5000)
+    K = np.array([[200.0, 0, 120], [0, 201, 90], [0, 0, 1]])
+    boxes = np.array([[100, 1, 10, 20, 30, 40], [200, 1, 11, 20, 30, 40]], np.float64)
+    with H5Writer(tmp_path / "a.h5", 240, 180) as w:
+        w.write(ev[:3000])
+        w.write(ev[3000:])
+        w.write_calibration(Calibration(K, "radtan", np.array([0.1, 0.01, 0, 0, 0])))
+        w.write_truth("boxes", boxes)
+    with open_recording(tmp_path / "a.h5") as rec:
+        assert rec.format == "etam-hdf5" and (rec.width, rec.height) == (240, 180)
+        assert rec.read_all().tobytes() == ev.tobytes()
+        assert [len(c) for c in rec.chunks(max_events=2000)] == [2000, 2000, 1000]
+        assert np.array_equal(rec.calibration.K, K) and rec.calibration.dist_model == "radtan"
+        assert np.array_equal(rec.truth.boxes, boxes) and rec.truth.present() == ["boxes"]
+
+
+def test_dsec_style_h5_adds_t_offset(tmp_path: Path) -> None:
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        for k, v in (("x", [1, 2]), ("y", [3, 4]), ("t", [0, 5]), ("p", [1, 0])):
+            f[f"events/{k}"] = np.asarray(v, {"t": "<u4", "p": "u1"}.get(k, "<u2"))
+        f["t_offset"] = np.int64(1_000_000)
+        f["ms_to_idx"] = np.zeros(1, np.uint64)
+    rec = open_recording(tmp_path / "d.h5")
+    assert rec.format == "dsec-hdf5" and (rec.width, rec.height) == (640, 480)
+    assert rec.read_all()["t"].tolist() == [1_000_000, 1_000_005]
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (b"", "empty"), (b"\x00\x01garbage" * 10, "unknown event file format"),
+    (b"\x89HDF\r\n\x1a\n" + b"\0" * 100, "not a readable HDF5 file"),
+])
+def test_unreadable_files_are_named(tmp_path: Path, content: bytes, message: str) -> None:
+    path = tmp_path / "bad.bin"
+    path.write_bytes(content)
+    with pytest.raises(FormatError, match=rf"bad.bin: .*{message}"):
+        open_recording(path)
+    with pytest.raises(SourceError, match="bad.bin"):
+        open_source(str(path))
+
+
+def test_file_source_plays_loops_and_publishes_truth(tmp_path: Path) -> None:
+    with H5Writer(tmp_path / "a.h5", 64, 48) as w:
+        w.write(_events(100, t0=1_000))  # t = 1000 .. 1990
+        w.write_truth("boxes", np.array([[1500, 7, 1, 2, 3, 4], [1500, 8, 5, 6, 7, 8], [1900, 7, 2, 2, 3, 4]]))
+    src = FileSource(open_recording(tmp_path / "a.h5"), loop=True)
+    assert src.start_us == 1000
+    first = src.advance(1495)
+    assert len(first) == 50 and first["t"][-1] == 1490
+    (t, ids, boxes), = src.truth(1000, 1600)
+    assert t == 1500 and ids.tolist() == [7, 8] and boxes.shape == (2, 4)
+    lap = src.advance(3000)  # the rest, then the second lap shifted to start after the first
+    assert np.all(np.diff(lap["t"]) > 0) and lap["t"][50] == 1991 and not src.done
+    once = FileSource(open_recording(tmp_path / "a.h5"))
+    assert len(once.advance(10**9)) == 100 and once.done
+
+
+def test_sim_and_info_commands(tmp_path: Path) -> None:
+    out = tmp_path / "o.h5"
+    sim = subprocess.run(etam_argv("sim", "objects", "--out", str(out), "--duration", "1", "--seed", "2", "--json"),
+                         capture_output=True, text=True, timeout=120)
+    assert sim.returncode == 0, sim.stderr
+    summary = json.loads(sim.stdout)
+    info = subprocess.run(etam_argv("info", str(out), "--json"), capture_output=True, text=True, timeout=60)
+    facts = json.loads(info.stdout)
+    assert facts["events"] == summary["events"] > 10_000 and facts["format"] == "etam-hdf5"
+    assert (facts["width"], facts["height"]) == (346, 260) and facts["ground_truth"] == ["boxes"]
+    assert 0.9 < facts["duration_s"] <= 1.0 and facts["calibrated"]
+    bad = subprocess.run(etam_argv("info", str(tmp_path / "nope.h5")), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "nope.h5: no such file" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_a_file_played_as_fast_as_possible_reaches_a_subscriber_whole(tmp_path: Path, router: str, rig: str) -> None:
+    import zenoh
+
+    from services.config import ZenohSettings
+    from services.messages import EventPacket, Tracks, decode
+    from tests.conftest import spawn, wait_for
+
+    path = tmp_path / "o.h5"
+    subprocess.run(etam_argv("sim", "objects", "--out", str(path), "--duration", "2", "--json"), check=True,
+                   capture_output=True, timeout=120)
+    expected = open_recording(path).read_all()
+    packets: list[EventPacket] = []
+    truth: list[Tracks] = []
+    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+        subs = [s.declare_subscriber(f"etam/{rig}/camera/cam0/events",
+                                     lambda x: packets.append(decode(x.payload.to_bytes(), EventPacket))),
+                s.declare_subscriber(f"etam/{rig}/camera/cam0/truth/boxes",
+                                     lambda x: truth.append(decode(x.payload.to_bytes(), Tracks)))]
+        with spawn("camera", "--source", str(path), "--rate", "0", "--connect", router, "--rig", rig):
+            wait_for(lambda: sum(len(p.events) for p in packets) >= len(expected), 60, "every event of the file")
+        for sub in subs:
+            sub.undeclare()
+    assert [p.seq for p in packets] == list(range(1, len(packets) + 1))  # no gaps
+    got = np.concatenate([p.events for p in packets])
+    assert got.tobytes() == expected.tobytes()
+    assert len(truth) == len(np.unique(open_recording(path).truth.boxes[:, 0]))
