@@ -41,6 +41,68 @@ def test_ecd_sequences_decode_to_the_documented_counts(seq: str) -> None:
     assert ev["x"].max() < 240 and ev["y"].max() < 180 and set(np.unique(ev["p"])) == {0, 1}
 
 
+REAL_FILES = [  # path, format, width, height, events (../shared/data/real/README.md), imu samples
+    ("davis240c_imu/IMU_translBoxes.aedat", "aedat2", 240, 180, 162_771, 4_833),
+    ("ethz3dv_dvs128/reveal6.aedat", "aedat2", 128, 128, 128_436, 0),
+    ("ethz3dv_dvs128/reveal9.aedat", "aedat2", 128, 128, 99_628, 0),
+    ("ethz3dv_dvs128/checkerboard_5.aedat", "aedat2", 128, 128, 391_136, 0),
+    ("rpg_event_lifetime_dvs128/building.mat", "matlab", 128, 128, 115_839, 0),
+    ("rpg_event_lifetime_dvs128/flip.mat", "matlab", 128, 128, 175_136, 0),
+    ("rpg_event_lifetime_dvs128/garfield.mat", "matlab", 128, 128, 202_235, 0),
+    ("rpg_event_lifetime_dvs128/stripes.mat", "matlab", 128, 128, 340_394, 0),
+    ("tonic_samples/sample_ncars.dat", "prophesee-dat", 78, 42, 2_009, 0),
+    ("tonic_samples/sample_nmnist.bin", "nmnist-bin", 34, 34, 4_325, 0),
+    ("prophesee_samples/gen3_sparklers_evt2.raw", "prophesee-raw-evt2", 640, 480, 521_252, 0),
+    ("prophesee_samples/gen41_driving_evt3.raw", "prophesee-raw-evt3", 1280, 720, 219_596, 0),
+    ("prophesee_samples/gen41_pedestrians_evt3.raw", "prophesee-raw-evt3", 1280, 720, 5_000, 0),
+    ("prophesee_samples/ncars_obj_004397_td.dat", "prophesee-dat", 54, 61, 4_407, 0),
+]
+
+
+@needs_real
+@pytest.mark.parametrize(("name", "fmt", "width", "height", "count", "imu"), REAL_FILES)
+def test_real_files_decode_to_the_documented_counts(name: str, fmt: str, width: int, height: int, count: int,
+                                                    imu: int) -> None:
+    with open_recording(REAL / name) as rec:
+        chunks = list(rec.chunks(max_events=50_000))
+        samples = rec.imu()
+    ev = np.concatenate(chunks)
+    assert (rec.format, rec.width, rec.height, len(ev)) == (fmt, width, height, count)
+    assert max(map(len, chunks)) <= 50_000  # bounded chunks
+    assert np.all(np.diff(ev["t"]) >= 0)
+    assert ev["x"].max() < width and ev["y"].max() < height and set(np.unique(ev["p"])) == {0, 1}
+    assert (0 if samples is None else len(samples[0])) == imu
+
+
+@needs_real
+def test_davis_imu_reads_gravity_and_a_still_gyro() -> None:
+    t, gyro, accel = open_recording(REAL / "davis240c_imu" / "IMU_translBoxes.aedat").imu()
+    assert np.all(np.diff(t) > 0)
+    assert np.linalg.norm(accel.mean(axis=0)) == pytest.approx(9.81, abs=0.5)
+    assert np.abs(gyro.mean(axis=0)).max() < 0.2  # rad/s: bias only
+
+
+@needs_real
+@pytest.mark.parametrize(("name", "word"), [("prophesee_samples/gen3_sparklers_evt2.raw", 4),
+                                            ("prophesee_samples/gen41_driving_evt3.raw", 2),
+                                            ("davis240c_imu/IMU_translBoxes.aedat", 8),
+                                            ("prophesee_samples/ncars_obj_004397_td.dat", 8)])
+def test_truncated_files_deliver_the_good_events_then_name_the_offset(tmp_path: Path, name: str, word: int) -> None:
+    data = (REAL / name).read_bytes()
+    cut = len(data) - len(data) // 3
+    cut -= (cut - (len(data) % word)) % word  # on a word boundary of the data, then one byte into a word
+    path = tmp_path / Path(name).name
+    path.write_bytes(data[:cut + 1])
+    full = open_recording(REAL / name).read_all()
+    got = []
+    with pytest.raises(FormatError, match=rf"{path.name} at byte {cut}: truncated"):
+        for chunk in open_recording(path).chunks(max_events=10_000):
+            got.append(chunk)
+    got = np.concatenate(got)
+    assert 0.4 * len(full) < len(got) < len(full)
+    assert np.isin(got["t"], full["t"]).all()
+
+
 @needs_real
 def test_ecd_text_matches_a_plain_parse_of_the_same_lines() -> None:
     path = REAL / "ecd_cuts_eventstppp" / "shapes_rotation" / "events.txt"

@@ -152,7 +152,8 @@ def test_tracking_resumes_after_the_camera_restarts(tmp_path: Path, rig: str) ->
                                              lambda s: stamps.append(decode(s.payload.to_bytes(), Tracks).t))
             wait_for(lambda: len(stamps) > 200, 20, "tracks before the restart")
             camera.kill()
-            wait_for(lambda: any(b < a for a, b in zip(stamps, stamps[1:], strict=False)), 15, "tracks from the new camera")
+            wait_for(lambda: any(b < a for a, b in zip(stamps, stamps[1:], strict=False)), 15,
+                     "tracks from the new camera")
             restart = next(i for i, (a, b) in enumerate(zip(stamps, stamps[1:], strict=False)) if b < a) + 1
             wait_for(lambda: len(stamps) > restart + 100, 15, "steady tracks after the restart")
             sub.undeclare()

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.camera.formats import ecd, hdf5
+from services.camera.formats import aedat2, arrays, ecd, hdf5, prophesee
 from services.camera.formats.recording import Calibration, FormatError, Recording, Truth
 
 __all__ = ["Calibration", "FormatError", "Recording", "Truth", "open_recording", "SUPPORTED"]
 
-SUPPORTED = "ETAM/DSEC HDF5, ECD text"
+SUPPORTED = ("ETAM/DSEC HDF5, ECD text, jAER AEDAT 2.0 (DAVIS240, DVS128), Prophesee RAW (EVT 2.0, 3.0) and DAT, "
+             "MATLAB `events`, npz, N-MNIST .bin")
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -25,6 +26,16 @@ def open_recording(path: str | Path) -> Recording:
         raise FormatError(path, "the file is empty")
     if head.startswith(hdf5.MAGIC):
         return hdf5.H5Recording(path)
+    if head.startswith(aedat2.MAGIC):
+        return aedat2.Aedat2Recording(path)
+    if head.startswith(b"% "):
+        return prophesee.open_prophesee(path)
+    if head.startswith(arrays.MAT_MAGIC):
+        return arrays.MatRecording(path)
+    if head.startswith(arrays.NPZ_MAGIC):
+        return arrays.NpzRecording(path)
     if ecd.looks_like(head):
         return ecd.EcdRecording(path)
+    if path.suffix.lower() == ".bin" and arrays.looks_like_nmnist(head):  # no header to tell it
+        return arrays.NmnistRecording(path)
     raise FormatError(path, f"unknown event file format (first bytes {head[:16]!r}); readable: {SUPPORTED}")
