@@ -50,6 +50,7 @@ REAL_FILES = [  # path, format, width, height, events (../shared/data/real/READM
     ("rpg_event_lifetime_dvs128/flip.mat", "matlab", 128, 128, 175_136, 0),
     ("rpg_event_lifetime_dvs128/garfield.mat", "matlab", 128, 128, 202_235, 0),
     ("rpg_event_lifetime_dvs128/stripes.mat", "matlab", 128, 128, 340_394, 0),
+    ("tonic_samples/sample.aedat4", "aedat4", 320, 240, 111_954, 475),
     ("tonic_samples/sample_ncars.dat", "prophesee-dat", 78, 42, 2_009, 0),
     ("tonic_samples/sample_nmnist.bin", "nmnist-bin", 34, 34, 4_325, 0),
     ("prophesee_samples/gen3_sparklers_evt2.raw", "prophesee-raw-evt2", 640, 480, 521_252, 0),

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.camera.formats import aedat2, arrays, ecd, hdf5, prophesee
+from services.camera.formats import aedat2, aedat4, arrays, ecd, hdf5, prophesee
 from services.camera.formats.recording import Calibration, FormatError, Recording, Truth
 
 __all__ = ["Calibration", "FormatError", "Recording", "Truth", "open_recording", "SUPPORTED"]
 
-SUPPORTED = ("ETAM/DSEC HDF5, ECD text, jAER AEDAT 2.0 (DAVIS240, DVS128), Prophesee RAW (EVT 2.0, 3.0) and DAT, "
+SUPPORTED = ("ETAM/DSEC HDF5, ECD text, AEDAT 4.0, jAER AEDAT 2.0 (DAVIS240, DVS128), Prophesee RAW (EVT 2.0, 3.0) "
+             "and DAT, "
              "MATLAB `events`, npz, N-MNIST .bin")
 
 
@@ -26,6 +27,8 @@ def open_recording(path: str | Path) -> Recording:
         raise FormatError(path, "the file is empty")
     if head.startswith(hdf5.MAGIC):
         return hdf5.H5Recording(path)
+    if head.startswith(aedat4.MAGIC):
+        return aedat4.Aedat4Recording(path)
     if head.startswith(aedat2.MAGIC):
         return aedat2.Aedat2Recording(path)
     if head.startswith(b"% "):
