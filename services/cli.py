@@ -164,6 +164,15 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from services.camera.offline import convert
+
+    summary = convert(Path(args.input), Path(args.output), progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of {args.input} "
+          f"({summary['input_format']}) to {args.output}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from benchmarks import suite
 
@@ -252,6 +261,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", help="an event file or ECD folder")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("convert", help="convert a recording to ETAM HDF5 (.h5), AEDAT 4.0 (.aedat4) or ECD text")
+    p.add_argument("input", help="any readable event file or ECD folder")
+    p.add_argument("output", help="FILE.h5, FILE.aedat4, events.txt, or a folder for ECD text")
+    p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
+    p.set_defaults(func=_cmd_convert)
 
     p = sub.add_parser("bench", help="run the performance suite")
     p.add_argument("--json", action="store_true", help="machine-readable results on stdout")

@@ -61,3 +61,32 @@ def describe(path: Path, progress: bool = True) -> dict[str, Any]:
             "calibrated": rec.calibration is not None,
             "ground_truth": rec.truth.present(),
         }
+
+
+def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
+    """Copy a recording into ETAM HDF5 (.h5), AEDAT 4.0 (.aedat4) or ECD text (.txt or a folder).
+
+    Calibration and ground truth go along where the output format has a place for them."""
+    from services.camera.formats.aedat4 import Aedat4Writer
+    from services.camera.formats.ecd import EcdWriter
+
+    suffix = dst.suffix.lower()
+    with open_recording(src) as rec:
+        if suffix in (".h5", ".hdf5"):
+            writer: Any = H5Writer(dst, rec.width, rec.height)
+            if rec.calibration is not None:
+                writer.write_calibration(rec.calibration)
+            for name in rec.truth.present():
+                writer.write_truth(name, getattr(rec.truth, name))
+        elif suffix == ".aedat4":
+            writer = Aedat4Writer(dst, rec.width, rec.height, source=rec.path.name)
+        elif suffix in (".txt", ""):
+            writer = EcdWriter(dst, rec.width, rec.height, rec.calibration)
+        else:
+            raise ValueError(f"{dst}: unknown output format {suffix!r} (write .h5, .aedat4, .txt or a folder)")
+        with writer, tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
+            for chunk in rec.chunks():
+                writer.write(chunk)
+                bar.update(len(chunk))
+            count = writer.count
+        return {"input": str(src), "input_format": rec.format, "output": str(dst), "events": count}

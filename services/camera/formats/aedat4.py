@@ -180,3 +180,67 @@ class Aedat4Recording(Recording):
         parts = [_imu_tables(payload) for _off, payload in self._packets(ids[0])]
         rows = np.concatenate(parts) if parts else np.zeros((0, 8))
         return rows[:, 0].astype(np.int64), np.deg2rad(rows[:, 5:8]), rows[:, 2:5] * G
+
+
+INFO_XML = """<dv version="2.0">
+    <node name="outInfo" path="/mainloop/Recorder/outInfo/">
+        <node name="0" path="/mainloop/Recorder/outInfo/0/">
+            <attr key="compression" type="string">LZ4</attr>
+            <attr key="originalModuleName" type="string">etam</attr>
+            <attr key="originalOutputName" type="string">events</attr>
+            <attr key="typeDescription" type="string">Array of events (polarity ON/OFF).</attr>
+            <attr key="typeIdentifier" type="string">EVTS</attr>
+            <node name="info" path="/mainloop/Recorder/outInfo/0/info/">
+                <attr key="sizeX" type="int">{width}</attr>
+                <attr key="sizeY" type="int">{height}</attr>
+                <attr key="source" type="string">{source}</attr>
+                <attr key="tsOffset" type="long">0</attr>
+            </node>
+        </node>
+    </node>
+</dv>
+"""
+
+
+def _io_header(info: str) -> bytes:
+    """The IOHeader flatbuffer: compression LZ4, no data table, the info node."""
+    text = info.encode() + b"\0"
+    vtable = struct.pack("<HHHHH", 10, 24, 4, 8, 16)  # sizes, then offsets of compression, table pos, info
+    head = struct.pack("<I", 24) + b"IOHE" + vtable + b"\0" * 6  # the table starts at 24, 8-aligned
+    table = struct.pack("<iiqI", 24 - 8, 1, -1, 8) + b"\0" * 4  # soffset, LZ4, no table, string 8 bytes on
+    return head + table + struct.pack("<I", len(text) - 1) + text
+
+
+def _event_payload(events: np.ndarray) -> bytes:
+    """A size-prefixed EventPacket flatbuffer around the events, laid out like DV's own."""
+    elements = np.zeros(len(events), EVENT_STRUCT)
+    elements["t"], elements["x"], elements["y"], elements["on"] = events["t"], events["x"], events["y"], events["p"]
+    body = (struct.pack("<I", 16) + b"EVTS" + b"\0\0" + struct.pack("<HHH", 6, 8, 4)
+            + struct.pack("<iII", 6, 4, len(elements)) + elements.tobytes())
+    return struct.pack("<I", len(body)) + body
+
+
+class Aedat4Writer:
+    """Writes events to an AEDAT 4.0 file, one LZ4-compressed packet per `write`."""
+
+    def __init__(self, path: str | Path, width: int, height: int, source: str = "ETAM") -> None:
+        self.path = Path(path)
+        self._file = open(self.path, "wb")
+        header = _io_header(INFO_XML.format(width=width, height=height, source=source))
+        self._file.write(MAGIC + struct.pack("<i", len(header)) + header)
+        self.count = 0
+
+    def write(self, events: np.ndarray, max_per_packet: int = 1 << 16) -> None:
+        for start in range(0, len(events), max_per_packet):
+            packet = lz4.frame.compress(_event_payload(events[start:start + max_per_packet]))
+            self._file.write(struct.pack("<ii", 0, len(packet)) + packet)
+        self.count += len(events)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> Aedat4Writer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

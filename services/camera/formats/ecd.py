@@ -14,7 +14,7 @@ import numpy as np
 from services.camera.formats.recording import CHUNK_EVENTS, Calibration, FormatError, Recording, events_from_columns
 from services.messages import EVENT_DTYPE
 
-ECD_SIZE = (240, 180)  # DAVIS240C, the sensor of every ECD sequence
+ECD_SIZE = (240, 180)  # DAVIS240C, the sensor of every ECD sequence (sensor.txt beside may say otherwise)
 BLOCK_BYTES = 8 << 20
 
 
@@ -42,6 +42,12 @@ class EcdRecording(Recording):
         if not self.events_path.is_file():
             raise FormatError(self.path, "no events.txt in this folder")
         self.width, self.height = ECD_SIZE
+        sensor = folder / "sensor.txt"
+        if sensor.is_file():
+            try:
+                self.width, self.height = (int(v) for v in sensor.read_text().split()[:2])
+            except ValueError:
+                raise FormatError(sensor, "expected `width height`") from None
         calib = folder / "calib.txt"
         if calib.is_file():
             values = np.array(calib.read_text().split(), np.float64)
@@ -114,3 +120,38 @@ class EcdRecording(Recording):
                 return pos, f"bad line {line[:60]!r}: expected `t x y p`"
             pos += len(line) + 1
         return 0, "unreadable text"
+
+
+class EcdWriter:
+    """Writes `events.txt` (t in seconds with 9 decimals, x, y, p), `calib.txt` when calibrated, and
+    `sensor.txt` (`width height`, an ETAM addition: ECD text has no place for the sensor size)."""
+
+    def __init__(self, path: str | Path, width: int, height: int, calibration: Calibration | None = None) -> None:
+        path = Path(path)
+        if path.suffix.lower() != ".txt":
+            path.mkdir(parents=True, exist_ok=True)
+            path = path / "events.txt"
+        self.path = path
+        (path.parent / "sensor.txt").write_text(f"{width} {height}\n")
+        if calibration is not None:
+            k, d = calibration.K, np.zeros(5)
+            d[: min(5, len(calibration.dist))] = calibration.dist[:5]
+            values = [k[0, 0], k[1, 1], k[0, 2], k[1, 2], *d]
+            (path.parent / "calib.txt").write_text(" ".join(f"{v:.12g}" for v in values) + "\n")
+        self._file = open(path, "w")
+        self.count = 0
+
+    def write(self, events: np.ndarray) -> None:
+        seconds, micros = np.divmod(events["t"], 1_000_000)
+        rows = np.column_stack([seconds, micros, events["x"], events["y"], events["p"]])
+        np.savetxt(self._file, rows, fmt="%d.%06d000 %d %d %d")
+        self.count += len(events)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> EcdWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
