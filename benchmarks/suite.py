@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import psutil
 
-from benchmarks import transport
+from benchmarks import readers, transport
 
 
 def _tracker(quick: bool) -> list[dict]:
@@ -54,6 +54,7 @@ def _simulator(quick: bool) -> list[dict]:
 
 BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
+    "readers": readers.run,
     "tracker": _tracker,
     "simulator": _simulator,
 }
@@ -83,6 +84,11 @@ def format_results(results: dict) -> str:
             f"({row['events_per_packet']} ev/packet): {row['messages_per_s']:7.0f} msg/s "
             f"{row['events_per_s'] / 1e6:6.2f} Mev/s delivered, lost {row['lost_messages']}, "
             f"latency p50 {row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms")
+    for row in results.get("readers", []):
+        peer = (f"{row['peer_events_per_s'] / 1e6:6.1f} Mev/s, ratio {row['ratio']:.2f}" if row["ratio"]
+                else row["peer_error"])
+        lines.append(f"{row['stage']:<22} ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s | {row['peer']:<13} {peer}"
+                     f"  ({row['events']} events, {row['bytes_per_event']:.1f} B/event)")
     for key in ("tracker", "simulator"):
         for row in results.get(key, []):
             extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))

@@ -256,3 +256,16 @@ def test_dv_processing_reads_the_aedat4_etam_writes(tmp_path: Path) -> None:
     assert len(got) == len(events)
     assert np.array_equal(got["timestamp"], events["t"]) and np.array_equal(got["x"], events["x"])
     assert np.array_equal(got["polarity"].astype(np.uint8), events["p"])
+
+
+@needs_real
+@pytest.mark.slow
+def test_bench_readers_agree_with_the_peers_on_the_same_files() -> None:
+    run = subprocess.run(etam_argv("bench", "--quick", "--only", "readers", "--json"), capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    rows = json.loads(run.stdout)["readers"]
+    assert {r["stage"] for r in rows} == {"read EVT 2.0", "read EVT 3.0", "read AEDAT 4.0 (LZ4)"}
+    for row in rows:
+        if row["peer_error"] is None:  # every peer that runs decodes exactly as many events as ETAM
+            assert row["peer_events"] == row["events"] > 100_000, row

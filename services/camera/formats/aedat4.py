@@ -19,12 +19,15 @@ from pathlib import Path
 import lz4.frame
 import numpy as np
 
-from services.camera.formats.recording import CHUNK_EVENTS, FormatError, Recording, events_from_columns
+from services.camera.formats import kernels
+from services.camera.formats.recording import CHUNK_EVENTS, FormatError, Recording
+from services.messages import EVENT_DTYPE
 
 MAGIC = b"#!AER-DAT4.0\r\n"
 LZ4_MAGIC = b"\x04\x22\x4d\x18"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-EVENT_STRUCT = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("on", "u1"), ("_pad", "V3")])
+EVENT_STRUCT = np.dtype({"names": ["t", "x", "y", "on"], "formats": ["<i8", "<i2", "<i2", "u1"],
+                         "offsets": [0, 8, 10, 12], "itemsize": 16})  # 3 bytes of padding at the end
 G = 9.80665
 
 
@@ -155,23 +158,22 @@ class Aedat4Recording(Recording):
                 offset += 8 + size
 
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
-        pending: list[np.ndarray] = []
-        count = 0
+        out = np.empty(max_events, EVENT_DTYPE)
+        n = 0
         for offset, payload in self._packets(self.events_stream):
             try:
                 raw = _struct_vector(payload, EVENT_STRUCT)
             except (struct.error, ValueError) as exc:
                 raise FormatError(self.path, f"corrupt event packet ({exc})", offset) from None
-            pending.append(events_from_columns(raw["t"], raw["x"], raw["y"], raw["on"]))
-            count += len(raw)
-            if count >= max_events:
-                merged = np.concatenate(pending)
-                for start in range(0, len(merged) - len(merged) % max_events, max_events):
-                    yield merged[start:start + max_events]
-                rest = merged[len(merged) - len(merged) % max_events:]
-                pending, count = ([rest], len(rest)) if len(rest) else ([], 0)
-        if pending:
-            yield np.concatenate(pending)
+            while len(raw):
+                take = min(len(raw), max_events - n)
+                n = kernels.dv_events(raw[:take], out, n)
+                raw = raw[take:]
+                if n == max_events:
+                    yield out
+                    out, n = np.empty(max_events, EVENT_DTYPE), 0
+        if n:
+            yield out[:n]
 
     def imu(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         ids = [sid for sid, (kind, _w, _h) in self.streams.items() if kind == "IMUS"]

@@ -1,9 +1,8 @@
 """Prophesee recordings: RAW EVT 2.0 and EVT 3.0, and DAT (v2 2-D events).
 
-EVT 2.0 (32-bit words) is decoded with numpy alone: TIME_HIGH words are forward-filled to every CD
-event. EVT 3.0 (16-bit words) is stateful (row, vector base, time high/low, and 24-bit time that
-wraps), so a small numba kernel walks the words; its state carries from block to block, so memory
-stays bounded. A trailing partial word is reported with its byte offset after the good events.
+Both encodings are stateful (EVT 2.0: time high; EVT 3.0: row, vector base, time high/low and a
+24-bit time that wraps), so numba kernels (`kernels.py`) walk the words straight into event records;
+their state carries from block to block, so memory stays bounded. A trailing partial word is reported with its byte offset after the good events.
 """
 
 from __future__ import annotations
@@ -12,10 +11,11 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-import numba
 import numpy as np
 
+from services.camera.formats import kernels
 from services.camera.formats.recording import CHUNK_EVENTS, FormatError, Recording, events_from_columns
+from services.messages import EVENT_DTYPE
 
 # sensor sizes by the plugin that wrote the file, when the header has no geometry
 PLUGIN_SIZES = {"gen3": (640, 480), "gen31": (640, 480), "gen41": (1280, 720), "imx636": (1280, 720),
@@ -74,7 +74,7 @@ class RawRecording(Recording):
 
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
         words_per_block = max(1024, max_events // 4)
-        decode = _Evt2() if self._word == 4 else _Evt3()
+        decode = _Decoder(kernels.evt2, 1, 1) if self._word == 4 else _Decoder(kernels.evt3, 12, 6)
         offset = self.data_offset
         with open(self.path, "rb") as f:
             f.seek(offset)
@@ -92,79 +92,19 @@ class RawRecording(Recording):
                 offset += whole
 
 
-class _Evt2:
-    """EVT 2.0 words to events; remembers the last TIME_HIGH across blocks."""
+class _Decoder:
+    """Words to events through a numba kernel whose state carries from block to block."""
 
-    def __init__(self) -> None:
-        self.time_high = 0
-
-    def __call__(self, words: np.ndarray) -> np.ndarray:
-        w = words.astype(np.int64)
-        kind = w >> 28
-        is_high = kind == 0x8
-        idx = np.where(is_high, np.arange(len(w)), -1)
-        np.maximum.accumulate(idx, out=idx)
-        high = np.where(idx >= 0, w[np.maximum(idx, 0)] & 0x0FFFFFFF, self.time_high)
-        if is_high.any():
-            self.time_high = int(w[np.flatnonzero(is_high)[-1]] & 0x0FFFFFFF)
-        cd = kind <= 1
-        wc = w[cd]
-        t = (high[cd] << 6) | ((wc >> 22) & 0x3F)
-        return _sorted(events_from_columns(t, (wc >> 11) & 0x7FF, wc & 0x7FF, kind[cd]))
-
-
-@numba.njit(cache=True)
-def _evt3_kernel(words, state, t_out, x_out, y_out, p_out):  # noqa: ANN001, ANN202 - numba kernel
-    y, base_x, pol, t_high, t_low, loops = state[0], state[1], state[2], state[3], state[4], state[5]
-    n = 0
-    for i in range(len(words)):
-        w = np.int64(words[i])
-        kind = w >> 12
-        if kind == 0x0:  # EVT_ADDR_Y
-            y = w & 0x7FF
-        elif kind == 0x2:  # EVT_ADDR_X: one event
-            t_out[n] = (loops << 24) | (t_high << 12) | t_low
-            x_out[n], y_out[n], p_out[n] = w & 0x7FF, y, (w >> 11) & 1
-            n += 1
-        elif kind == 0x3:  # VECT_BASE_X
-            base_x, pol = w & 0x7FF, (w >> 11) & 1
-        elif kind == 0x4 or kind == 0x5:  # VECT_12 / VECT_8: a bit per pixel from base_x
-            width = 12 if kind == 0x4 else 8
-            t = (loops << 24) | (t_high << 12) | t_low
-            for b in range(width):
-                if (w >> b) & 1:
-                    t_out[n], x_out[n], y_out[n], p_out[n] = t, base_x + b, y, pol
-                    n += 1
-            base_x += width
-        elif kind == 0x6:  # EVT_TIME_LOW
-            t_low = w & 0xFFF
-        elif kind == 0x8:  # EVT_TIME_HIGH; 24-bit time wraps every 16.8 s
-            high = w & 0xFFF
-            if high < t_high and t_high - high > 0x800:
-                loops += 1
-            t_high = high
-    state[0], state[1], state[2], state[3], state[4], state[5] = y, base_x, pol, t_high, t_low, loops
-    return n
-
-
-class _Evt3:
-    """EVT 3.0 words to events through the numba kernel; its state carries across blocks."""
-
-    def __init__(self) -> None:
-        self.state = np.zeros(6, np.int64)
+    def __init__(self, kernel, per_word: int, state_size: int) -> None:  # noqa: ANN001 - a numba kernel
+        self.kernel, self.per_word = kernel, per_word
+        self.state = np.zeros(state_size, np.int64)
 
     def __call__(self, words: np.ndarray) -> np.ndarray:
-        cap = 12 * len(words)
-        t, x, y, p = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
-        n = _evt3_kernel(words, self.state, t, x, y, p)
-        return _sorted(events_from_columns(t[:n], x[:n], y[:n], p[:n]))
-
-
-def _sorted(ev: np.ndarray) -> np.ndarray:
-    """Sensors emit events very nearly in time order; make a block exactly so."""
-    if len(ev) > 1 and np.any(np.diff(ev["t"]) < 0):
-        ev = ev[np.argsort(ev["t"], kind="stable")]
-    return ev
+        out = np.empty(self.per_word * len(words), EVENT_DTYPE)
+        n, unsorted = self.kernel(words, self.state, out)
+        out = out[:n]
+        # sensors emit events very nearly in time order; make a block exactly so
+        return out[np.argsort(out["t"], kind="stable")] if unsorted else out
 
 
 class DatRecording(Recording):
