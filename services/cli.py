@@ -173,6 +173,26 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_record(args: argparse.Namespace) -> int:
+    from services.camera.recorder import RecordService
+
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise config.ConfigError(f"{out}: folder {out.parent} does not exist")
+    return RecordService(_service_options(args, "recorder"), out, args.keys).run()
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from services.camera.recorder import ReplayService
+
+    path = Path(args.file)
+    if not path.is_file():
+        raise config.ConfigError(f"{path}: no such file")
+    if args.rate < 0:
+        raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
+    return ReplayService(_service_options(args, "replay"), path, args.rate, args.loop).run()
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from benchmarks import suite
 
@@ -267,6 +287,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output", help="FILE.h5, FILE.aedat4, events.txt, or a folder for ECD text")
     p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
     p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser("record", help="record live messages to an MCAP file (lossless; Ctrl-C to stop)")
+    _zenoh_flags(p)
+    p.add_argument("out", metavar="OUT.mcap", help="output file")
+    p.add_argument("--keys", default="etam/**", help="key expression to record (default etam/**)")
+    p.add_argument("--name", help="name in keys (default recorder)")
+    p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser("replay", help="publish an MCAP recording again, byte for byte")
+    _zenoh_flags(p)
+    p.add_argument("file", metavar="IN.mcap", help="a recording made by etam record")
+    p.add_argument("--rate", type=float, default=1.0, help="speed: 1 original timing (default), 0 as fast as possible")
+    p.add_argument("--loop", action="store_true", help="start over at the end")
+    p.add_argument("--name", help="name in keys (default replay)")
+    p.set_defaults(func=_cmd_replay)
 
     p = sub.add_parser("bench", help="run the performance suite")
     p.add_argument("--json", action="store_true", help="machine-readable results on stdout")

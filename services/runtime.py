@@ -56,6 +56,11 @@ class Output:
         """What this publisher sent (messages, events)."""
         return self._counter
 
+    def publish_raw(self, payload: bytes) -> None:
+        """Send an already encoded payload unchanged (replay: the bytes as recorded)."""
+        self._publisher.put(payload)
+        self._counter.count(0)
+
     @property
     def matched(self) -> bool:
         """Whether any subscriber anywhere listens to this key now."""
@@ -131,6 +136,12 @@ class Input:
     # asyncio side -----------------------------------------------------------------------------
     def __aiter__(self) -> Input:
         return self
+
+    async def raw(self) -> tuple[str, bytes]:
+        """The next sample undecoded: ``(key, payload)`` exactly as it arrived (for recorders)."""
+        key, payload = await self._next_raw()
+        self._counter.count(0)
+        return key, payload
 
     async def __anext__(self) -> tuple[str, Message]:
         while True:
