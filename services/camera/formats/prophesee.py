@@ -2,7 +2,8 @@
 
 Both encodings are stateful (EVT 2.0: time high; EVT 3.0: row, vector base, time high/low and a
 24-bit time that wraps), so numba kernels (`kernels.py`) walk the words straight into event records;
-their state carries from block to block, so memory stays bounded. A trailing partial word is reported with its byte offset after the good events.
+their state carries from block to block, so memory stays bounded. A trailing partial word is
+reported with its byte offset after the good events.
 """
 
 from __future__ import annotations
