@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import psutil
 
-from benchmarks import readers, transport
+from benchmarks import filters, readers, transport
 
 
 def _tracker(quick: bool) -> list[dict]:
@@ -55,6 +55,7 @@ def _simulator(quick: bool) -> list[dict]:
 BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
     "readers": readers.run,
+    "filters": filters.run,
     "tracker": _tracker,
     "simulator": _simulator,
 }
@@ -89,6 +90,13 @@ def format_results(results: dict) -> str:
                 else row["peer_error"])
         lines.append(f"{row['stage']:<22} ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s | {row['peer']:<13} {peer}"
                      f"  ({row['events']} events, {row['bytes_per_event']:.1f} B/event)")
+    for row in results.get("filters", []):
+        peer = (f"{row['peer_events_per_s'] / 1e6:6.1f} Mev/s, ratio {row['ratio']:.2f}; keeps "
+                f"{row['peer_signal_kept']:.1%} of signal, {row['peer_noise_kept']:.1%} of noise" if row["ratio"]
+                else row["peer_error"])
+        lines.append(f"{row['stage']}: ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s, keeps "
+                     f"{row['etam_signal_kept']:.1%} of signal, {row['etam_noise_kept']:.1%} of noise | {row['peer']} "
+                     f"{peer}  ({row['events']} events, {row['noise_fraction']:.0%} noise)")
     for key in ("tracker", "simulator"):
         for row in results.get(key, []):
             extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))

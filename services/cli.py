@@ -56,9 +56,15 @@ def _cmd_camera(args: argparse.Namespace) -> int:
 
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
+    from services.camera.filters import parse_chain
+
     source = open_source(args.source, seed=args.seed, loop=args.loop)
+    calib = getattr(getattr(source, "recording", None), "calibration", None)
+    chain = parse_chain(args.filter or [], source.width, source.height, source.K,
+                        calib.dist_model if calib else "none", calib.dist if calib else None)
     opts = _service_options(args, "cam0")
-    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events, rate=args.rate).run()
+    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events, rate=args.rate,
+                         filters=chain).run()
 
 
 def _cmd_tracker(args: argparse.Namespace) -> int:
@@ -231,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=1.0,
                    help="playback speed of a recording: 1 real time (default), 2 twice as fast, 0 as fast as possible")
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
+    p.add_argument("--filter", action="append", metavar="NAME[:ARGS]",
+                   help="add a filter to the chain, in order: ba[:WINDOW_US], refractory[:US], roi:X,Y,W,H, "
+                        "mask:IMAGE.png, polarity:on|off, hotpixels[:LEARN_US], undistort")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
     p.add_argument("--slice-us", type=int, default=1000, help="packet time slice in us (default 1000)")
     p.add_argument("--max-events", type=int, default=100_000, help="largest packet (default 100000)")

@@ -6,6 +6,7 @@ import asyncio
 import logging
 import time
 
+from services.camera.filters import FilterChain
 from services.camera.packetizer import Packetizer
 from services.camera.sources import EventSource
 from services.messages import CameraInfo, EventPacket, Tracks
@@ -28,13 +29,15 @@ class CameraService(Service):
     kind = "camera"
 
     def __init__(self, options: ServiceOptions, source: EventSource, slice_us: int = 1000,
-                 max_events: int = 100_000, rate: float = 1.0, tick_s: float = 0.005) -> None:
+                 max_events: int = 100_000, rate: float = 1.0, tick_s: float = 0.005,
+                 filters: FilterChain | None = None) -> None:
         super().__init__(options)
         if rate < 0:
             raise ValueError(f"rate must be >= 0, got {rate}")
         self.source = source
         self.packetizer = Packetizer(slice_us, max_events)
         self.rate, self.tick_s = rate, tick_s
+        self.filters = filters or FilterChain([])
         self.status["source"] = source.name
 
     def info(self) -> CameraInfo:
@@ -74,7 +77,7 @@ class CameraService(Service):
 
     def _play(self, since_us: int, until_us: int) -> None:
         """Publish the events and truth of (since_us, until_us]."""
-        self.packetizer.accept(self.source.advance(until_us))
+        self.packetizer.accept(self.filters(self.source.advance(until_us)))
         w, h = self.source.width, self.source.height
         for stamp, chunk in self.packetizer.generate(until_us):
             self._events.publish(EventPacket(stamp=stamp, width=w, height=h, events=chunk))
