@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import psutil
 
-from benchmarks import filters, readers, transport
+from benchmarks import filters, playback, readers, transport
 
 
 def _tracker(quick: bool) -> list[dict]:
@@ -56,6 +56,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
     "readers": readers.run,
     "filters": filters.run,
+    "playback": playback.run,
     "tracker": _tracker,
     "simulator": _simulator,
 }
@@ -97,6 +98,12 @@ def format_results(results: dict) -> str:
         lines.append(f"{row['stage']}: ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s, keeps "
                      f"{row['etam_signal_kept']:.1%} of signal, {row['etam_noise_kept']:.1%} of noise | {row['peer']} "
                      f"{peer}  ({row['events']} events, {row['noise_fraction']:.0%} noise)")
+    for row in results.get("playback", []):
+        if "error" in row:
+            lines.append(f"{row['stage']}: {row['error']}")
+            continue
+        lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.1f} Mev/s, {row['events']} of "
+                     f"{row['file_events']} events, {row['seq_gaps']} sequence gaps")
     for key in ("tracker", "simulator"):
         for row in results.get(key, []):
             extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.camera.formats.kernels import first_at_or_after
 from services.messages import EVENT_DTYPE
 
 
@@ -20,30 +21,41 @@ class Packetizer:
             raise ValueError("slice_us and max_events must be positive")
         self.slice_us = slice_us
         self.max_events = max_events
-        self._buf = np.empty(0, EVENT_DTYPE)
+        self._chunks: list[np.ndarray] = []  # accepted arrays, kept as given: slices are views on them
         self._next_end: int | None = None
 
     def accept(self, events: np.ndarray) -> None:
         if len(events):
-            self._buf = np.concatenate([self._buf, events]) if len(self._buf) else events
+            self._chunks.append(events)
 
     def generate(self, now_us: int) -> list[tuple[int, np.ndarray]]:
         """All complete slices whose end is at or before `now_us`."""
         if self._next_end is None:
-            first = int(self._buf["t"][0]) if len(self._buf) else now_us
+            first = int(self._chunks[0]["t"][0]) if self._chunks else now_us
             self._next_end = (first // self.slice_us + 1) * self.slice_us
-        ends = np.arange(self._next_end, now_us + 1, self.slice_us, dtype=np.int64)
-        if not len(ends):
-            return []
-        cuts = np.searchsorted(self._buf["t"], ends, side="left")  # slice k holds t in [end_k - slice, end_k)
         out: list[tuple[int, np.ndarray]] = []
-        start = 0
-        for end, cut in zip(ends.tolist(), cuts.tolist(), strict=True):
-            part = self._buf[start:cut]
+        end = self._next_end
+        while end <= now_us:  # slice k holds t in [end - slice_us, end)
+            part = self._take_before(end)
             chunks = [part[i:i + self.max_events] for i in range(0, max(len(part), 1), self.max_events)]
             out.extend((int(c["t"][-1]), c) for c in chunks[:-1])
             out.append((end, chunks[-1]))
-            start = cut
-        self._buf = self._buf[start:]
-        self._next_end = int(ends[-1]) + self.slice_us
+            end += self.slice_us
+        self._next_end = end
         return out
+
+    def _take_before(self, end_us: int) -> np.ndarray:
+        """Remove and return the events before `end_us`: a view when they lie in one array."""
+        pieces = []
+        while self._chunks:
+            chunk = self._chunks[0]
+            cut = first_at_or_after(chunk, end_us)
+            if cut:
+                pieces.append(chunk[:cut])
+            if cut < len(chunk):
+                self._chunks[0] = chunk[cut:]
+                break
+            self._chunks.pop(0)
+        if len(pieces) == 1:
+            return pieces[0]
+        return np.concatenate(pieces) if pieces else np.empty(0, EVENT_DTYPE)

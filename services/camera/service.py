@@ -68,12 +68,21 @@ class CameraService(Service):
             if self.paused or src.done:
                 wall0, sensor0 = time.monotonic(), sensor_us  # resume from here, not in a rush
                 continue
-            until = sensor_us + FAST_STEP_US if fast else sensor0 + int((time.monotonic() - wall0) * 1e6 * self.rate)
+            if fast:
+                until = self._fast_until(sensor_us)
+            else:
+                until = sensor0 + int((time.monotonic() - wall0) * 1e6 * self.rate)
             self._play(sensor_us, until)
             sensor_us = until
             if src.done:
                 self._play(sensor_us, sensor_us + self.packetizer.slice_us)  # flush the last slice
                 self._report_end()
+
+    def _fast_until(self, sensor_us: int) -> int:
+        """The next step when playing as fast as possible: to the end of what the file reader has
+        loaded (views, no copies), or FAST_STEP_US of sensor time."""
+        loaded = getattr(self.source, "loaded_until_us", lambda: None)()
+        return max(loaded, sensor_us + 1) if loaded is not None else sensor_us + FAST_STEP_US
 
     def _play(self, since_us: int, until_us: int) -> None:
         """Publish the events and truth of (since_us, until_us]."""

@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from services.camera.formats import FormatError, Recording, open_recording
+from services.camera.formats.kernels import first_at_or_after
 from services.camera.simulator import EventSimulator, ObjectsScene
 from services.messages import EVENT_DTYPE
 
@@ -98,21 +99,28 @@ class FileSource:
             chunk["t"] += self._shift_us
         if len(chunk):
             self._loaded_us = int(chunk["t"][-1])
-        self._pending = np.concatenate([self._pending, chunk]) if len(self._pending) else chunk
+        self._pending = chunk  # only called once the pending events are used up
         return True
 
     def advance(self, until_us: int) -> np.ndarray:
-        out = []
+        parts = []
         while True:
-            cut = int(np.searchsorted(self._pending["t"], until_us, side="right"))
-            out.append(self._pending[:cut])
+            if not len(self._pending) and not self._fill():
+                self.done = True
+                break
+            cut = first_at_or_after(self._pending, until_us + 1)
+            if cut:
+                parts.append(self._pending[:cut])
             self._pending = self._pending[cut:]
             if len(self._pending):
                 break
-            if not self._fill():
-                self.done = True
-                break
-        return np.concatenate(out) if len(out) > 1 else out[0]
+        if len(parts) == 1:
+            return parts[0]  # a view on the chunk: no copy
+        return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
+
+    def loaded_until_us(self) -> int | None:
+        """Time of the last event already read from the file: advancing to it costs no copy."""
+        return int(self._pending["t"][-1]) if len(self._pending) else None
 
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
         if self._truth_rows is None:

@@ -77,3 +77,17 @@ def dv_events(raw, out, start):  # noqa: ANN001, ANN201 - numba kernel
         r = raw[i]
         out[start + i].t, out[start + i].x, out[start + i].y, out[start + i].p = r.t, r.x, r.y, r.on
     return start + len(raw)
+
+
+@numba.njit(cache=True, nogil=True)
+def first_at_or_after(events, t_us):  # noqa: ANN001, ANN201 - numba kernel
+    """Index of the first event with t >= t_us in time-sorted records (binary search in place:
+    numpy's searchsorted would first copy the strided time column)."""
+    lo, hi = 0, len(events)
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if events[mid].t < t_us:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo

@@ -1,0 +1,68 @@
+"""A file played by the camera service as fast as possible (`--rate 0`), received in another process.
+
+The camera runs as its own process (the real `etam camera`), reading a dense Prophesee EVT 3.0
+recording (the real sample's data repeated with rising time); this process subscribes over zenoh
+and counts events and sequence gaps. Figures: events/s from the first to the last packet received,
+and whether every event arrived.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from benchmarks.readers import SAMPLES, _repeat_raw
+from services.camera.formats import open_recording
+from services.config import ZenohSettings
+from services.messages import EventPacket, decode
+
+
+def run(quick: bool = False) -> list[dict]:
+    if not SAMPLES.is_dir():
+        return [{"stage": "playback --rate 0", "error": "../shared/data/real is absent"}]
+    with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
+        path = Path(tmp) / "dense.raw"
+        _repeat_raw(SAMPLES / "gen41_driving_evt3.raw", path, 40 if quick else 200, "<u2", 12)
+        expected = sum(len(c) for c in open_recording(path).chunks())
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+        got = {"events": 0, "packets": 0, "gaps": 0, "last_seq": 0, "first": 0.0, "last": 0.0}
+        lock, done = threading.Lock(), threading.Event()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            msg = decode(sample.payload.to_bytes(), EventPacket)
+            now = time.perf_counter()
+            with lock:
+                got["first"] = got["first"] or now
+                got["last"] = now
+                got["events"] += len(msg.events)
+                got["packets"] += 1
+                got["gaps"] += max(0, msg.seq - got["last_seq"] - 1)
+                got["last_seq"] = msg.seq
+                if got["events"] >= expected:
+                    done.set()
+
+        conf = ZenohSettings(mode="peer", listen=[endpoint]).zenoh_config()
+        with zenoh.open(conf) as session:
+            sub = session.declare_subscriber("etam/bench/camera/cam0/events", on_sample)
+            camera = subprocess.Popen([sys.executable, "-m", "services.cli", "camera", "--source", str(path),
+                                       "--rate", "0", "--rig", "bench", "--connect", endpoint, "--log-level",
+                                       "WARNING"])
+            try:
+                done.wait(120)
+            finally:
+                camera.terminate()
+                camera.wait(20)
+                sub.undeclare()
+    span = max(got["last"] - got["first"], 1e-9)
+    return [{"stage": "playback --rate 0 to another process", "file_events": expected, "events": got["events"],
+             "packets": got["packets"], "seq_gaps": got["gaps"], "events_per_s": got["events"] / span,
+             "complete": got["events"] == expected and got["gaps"] == 0}]
