@@ -269,3 +269,25 @@ def test_bench_readers_agree_with_the_peers_on_the_same_files() -> None:
     for row in rows:
         if row["peer_error"] is None:  # every peer that runs decodes exactly as many events as ETAM
             assert row["peer_events"] == row["events"] > 100_000, row
+
+
+@needs_real
+def test_playing_a_davis_file_publishes_its_imu(router: str, rig: str) -> None:
+    import zenoh
+
+    from services.config import ZenohSettings
+    from services.messages import ImuPacket, decode
+    from tests.conftest import spawn, wait_for
+
+    samples: list[ImuPacket] = []
+    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+        sub = s.declare_subscriber(f"etam/{rig}/camera/cam0/imu",
+                                   lambda x: samples.append(decode(x.payload.to_bytes(), ImuPacket)))
+        with spawn("camera", "--source", str(REAL / "davis240c_imu" / "IMU_translBoxes.aedat"), "--rate", "0",
+                   "--connect", router, "--rig", rig):
+            wait_for(lambda: sum(len(p.t) for p in samples) >= 4_833, 60, "every IMU sample")
+        sub.undeclare()
+    t = np.concatenate([p.t for p in samples])
+    accel = np.concatenate([p.accel for p in samples])
+    assert len(t) == 4_833 and np.all(np.diff(t) > 0)
+    assert np.linalg.norm(accel.mean(axis=0)) == pytest.approx(9.81, abs=0.5)

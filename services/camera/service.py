@@ -9,7 +9,7 @@ import time
 from services.camera.filters import FilterChain
 from services.camera.packetizer import Packetizer
 from services.camera.sources import EventSource
-from services.messages import CameraInfo, EventPacket, Tracks
+from services.messages import CameraInfo, EventPacket, ImuPacket, Tracks
 from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
@@ -18,8 +18,8 @@ FAST_STEP_US = 20_000  # sensor time per step when playing as fast as possible (
 
 
 class CameraService(Service):
-    """Publishes ``camera/<cam>/events`` (1 ms slices), ``info`` (each second and as a query) and
-    ``truth/boxes`` when the source has ground truth.
+    """Publishes ``camera/<cam>/events`` (1 ms slices), ``info`` (each second and as a query),
+    ``imu`` when the source has inertial samples and ``truth/boxes`` when it has ground truth.
 
     `rate` 1 plays in real time, 2 twice as fast, 0 as fast as the source and the network allow
     (then it waits for a first subscriber, and publishers block rather than drop, so a subscriber
@@ -48,13 +48,14 @@ class CameraService(Service):
         fast = self.rate == 0
         self._events = self.publisher("events", block=fast)
         self._truth = self.publisher("truth/boxes", block=fast)
+        self._imu = self.publisher("imu", block=fast)
         info = self.publisher("info")
         self.serve("info", lambda _req: self.info())
         info.publish(self.info())
         await asyncio.sleep(0)
         if fast:  # as fast as possible is only useful to someone listening from the start
-            log.info("waiting for a subscriber to %s", self._events.key)
-            while not self._events.matched:
+            log.info("waiting for a subscriber to %s (or its imu, truth)", self._events.key)
+            while not any(out.matched for out in (self._events, self._imu, self._truth)):
                 await asyncio.sleep(0.05)
         src = self.source
         sensor_us = src.start_us
@@ -92,6 +93,10 @@ class CameraService(Service):
             self._events.publish(EventPacket(stamp=stamp, width=w, height=h, events=chunk))
         for t_us, ids, boxes in self.source.truth(since_us, until_us):
             self._truth.publish(Tracks.from_boxes(t_us, ids, boxes))
+        imu = self.source.imu(since_us, until_us)
+        if imu is not None:
+            t, gyro, accel = imu
+            self._imu.publish(ImuPacket(stamp=int(t[-1]), t=t, gyro=gyro, accel=accel))
 
     def _report_end(self) -> None:
         error = getattr(self.source, "error", None)

@@ -39,6 +39,11 @@ class EventSource(Protocol):
 
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]: ...
 
+    def imu(self, since_us: int, until_us: int) -> ImuSamples | None: ...
+
+
+ImuSamples = tuple[np.ndarray, np.ndarray, np.ndarray]  # t_us, gyro rad/s (Nx3), accel m/s^2 (Nx3)
+
 
 class SimSource:
     """`sim:objects`: the simulator's static-camera scene with moving objects and truth boxes."""
@@ -54,6 +59,9 @@ class SimSource:
 
     def advance(self, until_us: int) -> np.ndarray:
         return self.sim.advance(until_us)
+
+    def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
+        return None  # the objects scene's camera is static and has no IMU
 
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
         first = (since_us // TRUTH_PERIOD_US + 1) * TRUTH_PERIOD_US
@@ -78,6 +86,14 @@ class FileSource:
         self.start_us = int(self._pending["t"][0]) if len(self._pending) else 0
         boxes = recording.truth.boxes
         self._truth_rows = boxes[np.argsort(boxes[:, 0], kind="stable")] if boxes is not None else None
+        self._imu = recording.imu()  # IMU streams are small: read once
+
+    def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
+        if self._imu is None:
+            return None
+        t, gyro, accel = self._imu
+        sel = (t + self._shift_us > since_us) & (t + self._shift_us <= until_us)
+        return (t[sel] + self._shift_us, gyro[sel], accel[sel]) if sel.any() else None
 
     def _fill(self) -> bool:
         """Load the next chunk into the pending buffer; False at the end of the file or at a fault."""
