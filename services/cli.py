@@ -20,6 +20,8 @@ from services.camera.sources import SourceError
 log = logging.getLogger("etam")
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+SIM_PARAM_HELP = ("a simulator parameter (repeatable): contrast, contrast_sigma, refractory_us, noise_rate_hz, "
+                  "hot_pixel_fraction, hot_pixel_rate_hz, max_step_px, min_dt_us, max_dt_us")
 
 
 def _zenoh_flags(p: argparse.ArgumentParser) -> None:
@@ -58,7 +60,9 @@ def _cmd_camera(args: argparse.Namespace) -> int:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     from services.camera.filters import parse_chain
 
-    source = open_source(args.source, seed=args.seed, loop=args.loop)
+    from services.camera.simulator import SimParams
+
+    source = open_source(args.source, seed=args.seed, loop=args.loop, sim_params=SimParams.parse(args.sim_param or []))
     calib = getattr(getattr(source, "recording", None), "calibration", None)
     chain = parse_chain(args.filter or [], source.width, source.height, source.K,
                         calib.dist_model if calib else "none", calib.dist if calib else None)
@@ -152,7 +156,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     if args.duration <= 0:
         raise config.ConfigError(f"--duration must be positive, got {args.duration}")
-    summary = simulate(args.scene, Path(args.out), args.duration, args.seed, progress=not args.json)
+    from services.camera.simulator import SimParams
+
+    params = SimParams.parse(args.sim_param or [])
+    summary = simulate(args.scene, Path(args.out), args.duration, args.seed, progress=not args.json, params=params)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
           f"({args.duration} s, seed {args.seed}) and {summary['truth_boxes']} truth boxes to {args.out}")
     return 0
@@ -241,6 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add a filter to the chain, in order: ba[:WINDOW_US], refractory[:US], roi:X,Y,W,H, "
                         "mask:IMAGE.png, polarity:on|off, hotpixels[:LEARN_US], undistort")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
+    p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
     p.add_argument("--slice-us", type=int, default=1000, help="packet time slice in us (default 1000)")
     p.add_argument("--max-events", type=int, default=100_000, help="largest packet (default 100000)")
     p.set_defaults(func=_cmd_camera)
@@ -283,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
     p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
     p.set_defaults(func=_cmd_sim)
 

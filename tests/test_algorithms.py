@@ -158,3 +158,22 @@ def test_dashboard_table_lists_services_keys_and_losses() -> None:
     assert "| → events | 1000 | 250.0k | 0 | 0 |  |" in text
     assert "| ← camera/\\*/events | 1000 | 250.0k | 7 | 3 | 1.2 |" in text
     assert "**tracker/objects** · 0% cpu · 0 MB · **silent**" in text and "camera/cam0** · 50% cpu · 100 MB |" in text
+
+
+def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:
+    from services.camera.simulator import SimParams
+
+    params = SimParams.parse(["refractory_us=1000", "hot_pixel_fraction=0.001", "hot_pixel_rate_hz=500",
+                              "noise_rate_hz=0"])
+    assert params.refractory_us == 1000 and params.noise_rate_hz == 0.0
+    ev = EventSimulator(ObjectsScene(seed=4), params, seed=4).advance(1_000_000)
+    idx = ev["y"].astype(np.int64) * 346 + ev["x"]
+    order = np.lexsort((ev["t"], idx))
+    same = idx[order][1:] == idx[order][:-1]
+    assert np.all(np.diff(ev["t"][order])[same] >= 1000)  # no pixel fires twice within the refractory period
+    counts = np.bincount(idx, minlength=346 * 260)
+    assert (counts > 200).sum() >= 50  # ~90 hot pixels at up to 1 kHz (capped by refractory)
+    with pytest.raises(ValueError, match="not one of"):
+        SimParams.parse(["speed=3"])
+    with pytest.raises(ValueError, match="expected a number"):
+        SimParams.parse(["contrast=high"])

@@ -10,14 +10,16 @@ from tqdm import tqdm
 
 from services.camera.formats import Calibration, open_recording
 from services.camera.formats.hdf5 import H5Writer
+from services.camera.simulator import SimParams
 from services.camera.sources import SimSource, open_source
 
 STEP_US = 100_000
 
 
-def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: bool = True) -> dict[str, Any]:
+def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: bool = True,
+             params: SimParams | None = None) -> dict[str, Any]:
     """Simulate `scene` for `duration_s` into an ETAM HDF5 file with its ground truth."""
-    source = open_source(f"sim:{scene}", seed=seed)
+    source = open_source(f"sim:{scene}", seed=seed, sim_params=params)
     assert isinstance(source, SimSource)
     end_us = int(duration_s * 1e6)
     boxes = []

@@ -3,7 +3,9 @@
 A scene renders log intensity at any time; `EventSimulator` keeps a per-pixel reference level and
 emits an event each time the log intensity moves one contrast threshold C (with per-pixel mismatch)
 away from it, timing each crossing by linear interpolation between two renders. The render rate
-adapts so that nothing moves more than about one pixel between renders.
+adapts so that nothing moves more than about one pixel between renders. A refractory period blinds
+a pixel after it fires; background activity and hot pixels add noise. Every parameter is in
+`SimParams`; the same seed gives the same events.
 
 `ObjectsScene` is the static-camera scene of several textured rectangles of known metric size and
 depth that move, stop and cross, with ground-truth boxes.
@@ -11,11 +13,13 @@ depth that move, stop and cross, with ground-truth boxes.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from services.camera.filters import Refractory
 from services.messages import EVENT_DTYPE
 
 
@@ -27,11 +31,29 @@ class SimParams:
     """Event-generation parameters (contrast thresholds in log intensity units)."""
 
     contrast: float = 0.25
-    contrast_sigma: float = 0.03
+    contrast_sigma: float = 0.03  # per-pixel mismatch of the threshold
+    refractory_us: int = 100  # a pixel that fired is blind this long
     noise_rate_hz: float = 0.05  # background activity per pixel
+    hot_pixel_fraction: float = 1e-4  # pixels that fire on their own, far more than the rest
+    hot_pixel_rate_hz: float = 100.0
     max_step_px: float = 1.0  # adaptive render rate: largest image motion between renders
     min_dt_us: int = 200
     max_dt_us: int = 5000
+
+    @classmethod
+    def parse(cls, items: list[str]) -> SimParams:
+        """Parameters from `name=value` items; ValueError naming an unknown name or a bad value."""
+        params = cls()
+        kinds = {f.name: f.type for f in dataclasses.fields(cls)}
+        for item in items:
+            name, _, value = item.partition("=")
+            if name not in kinds:
+                raise ValueError(f"simulator parameter {name!r} is not one of {', '.join(kinds)}")
+            try:
+                setattr(params, name, (int if kinds[name] in (int, "int") else float)(value))
+            except ValueError:
+                raise ValueError(f"simulator parameter {name}={value!r}: expected a number") from None
+        return params
 
 
 def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -161,6 +183,9 @@ class EventSimulator:
         self.t_us = 0
         self._last = scene.render(0)
         self._ref = self._last.copy()
+        n_hot = int(round(self.params.hot_pixel_fraction * scene.width * scene.height))
+        self._hot = self._rng.choice(scene.width * scene.height, n_hot, replace=False)
+        self._refractory = Refractory(scene.width, scene.height, self.params.refractory_us)
 
     def advance(self, until_us: int) -> np.ndarray:
         """All events in (t_us, until_us], sorted by time."""
@@ -171,8 +196,7 @@ class EventSimulator:
             dt = p.max_dt_us if speed <= 0 else int(np.clip(p.max_step_px / speed * 1e6, p.min_dt_us, p.max_dt_us))
             t1 = min(self.t_us + dt, until_us)
             chunks.append(self._step(t1))
-        ev = np.concatenate(chunks) if chunks else np.empty(0, EVENT_DTYPE)
-        return ev[np.argsort(ev["t"], kind="stable")]
+        return np.concatenate(chunks) if chunks else np.empty(0, EVENT_DTYPE)  # steps are sorted and in order
 
     def _step(self, t1: int) -> np.ndarray:
         t0 = self.t_us
@@ -198,7 +222,18 @@ class EventSimulator:
         ev["p"] = (sign[rep] > 0).astype(np.uint8)
         self._ref[ys, xs] += sign * counts * self._c[ys, xs]
         self._last, self.t_us = cur, t1
-        return np.concatenate([ev, self._noise(t0, t1)])
+        ev = np.concatenate([ev, self._noise(t0, t1), self._hot_pixels(t0, t1)])
+        ev = ev[np.argsort(ev["t"], kind="stable")]
+        return self._refractory(ev) if self.params.refractory_us > 0 else ev
+
+    def _hot_pixels(self, t0: int, t1: int) -> np.ndarray:
+        counts = self._rng.poisson(self.params.hot_pixel_rate_hz * (t1 - t0) / 1e6, len(self._hot))
+        pixels = np.repeat(self._hot, counts)
+        ev = np.empty(len(pixels), EVENT_DTYPE)
+        ev["t"] = self._rng.integers(t0 + 1, t1 + 1, len(pixels))
+        ev["y"], ev["x"] = np.divmod(pixels, self.scene.width)
+        ev["p"] = self._rng.integers(0, 2, len(pixels))
+        return ev
 
     def _noise(self, t0: int, t1: int) -> np.ndarray:
         lam = self.params.noise_rate_hz * self.scene.width * self.scene.height * (t1 - t0) / 1e6

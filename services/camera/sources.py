@@ -14,7 +14,7 @@ import numpy as np
 
 from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
-from services.camera.simulator import EventSimulator, ObjectsScene
+from services.camera.simulator import EventSimulator, ObjectsScene, SimParams
 from services.messages import EVENT_DTYPE
 
 TRUTH_PERIOD_US = 20_000  # the simulator's boxes at 50 Hz
@@ -151,13 +151,13 @@ class FileSource:
 SIM_SCENES = ("objects",)
 
 
-def open_source(spec: str, seed: int = 0, loop: bool = False) -> EventSource:
+def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None) -> EventSource:
     """Open a source from its command-line name: ``sim:objects``, or the path of a recording."""
     if spec.startswith("sim:"):
         scene = spec[4:]
         if scene == "objects":
             sc = ObjectsScene(seed=seed)
-            return SimSource(sc, EventSimulator(sc, seed=seed), spec)
+            return SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)
         raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                           f"{', '.join('sim:' + s for s in SIM_SCENES)})")
     if spec == "usb" or spec.startswith("usb:"):
