@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import psutil
 
-from benchmarks import filters, playback, readers, transport
+from benchmarks import filters, playback, readers, transport, writers
 
 
 def _tracker(quick: bool) -> list[dict]:
@@ -56,6 +56,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
     "readers": readers.run,
     "filters": filters.run,
+    "writers": writers.run,
     "playback": playback.run,
     "tracker": _tracker,
     "simulator": _simulator,
@@ -98,6 +99,11 @@ def format_results(results: dict) -> str:
         lines.append(f"{row['stage']}: ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s, keeps "
                      f"{row['etam_signal_kept']:.1%} of signal, {row['etam_noise_kept']:.1%} of noise | {row['peer']} "
                      f"{peer}  ({row['events']} events, {row['noise_fraction']:.0%} noise)")
+    for row in results.get("writers", []):
+        peer = (f"{row['peer_events_per_s'] / 1e6:6.1f} Mev/s at {row['peer_bytes_per_event']:.2f} B/event, "
+                f"ratio {row['ratio']:.2f}" if row["ratio"] else row["peer_error"])
+        lines.append(f"{row['stage']:<26} ETAM {row['etam_events_per_s'] / 1e6:6.1f} Mev/s at "
+                     f"{row['etam_bytes_per_event']:.2f} B/event | {row['peer']} {peer}")
     for row in results.get("playback", []):
         if "error" in row:
             lines.append(f"{row['stage']}: {row['error']}")

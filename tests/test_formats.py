@@ -291,3 +291,15 @@ def test_playing_a_davis_file_publishes_its_imu(router: str, rig: str) -> None:
     accel = np.concatenate([p.accel for p in samples])
     assert len(t) == 4_833 and np.all(np.diff(t) > 0)
     assert np.linalg.norm(accel.mean(axis=0)) == pytest.approx(9.81, abs=0.5)
+
+
+@pytest.mark.slow
+def test_bench_writers_and_filters_run_and_report_every_figure() -> None:
+    run = subprocess.run(etam_argv("bench", "--quick", "--only", "writers", "--only", "filters", "--json"),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    results = json.loads(run.stdout)
+    assert {r["stage"] for r in results["writers"]} == {"record MCAP (etam record)", "write AEDAT 4.0 (LZ4)"}
+    assert all(r["etam_events_per_s"] > 0 and 0 < r["etam_bytes_per_event"] < 20 for r in results["writers"])
+    (ba,) = results["filters"]
+    assert ba["etam_noise_kept"] < 0.1 and ba["etam_signal_kept"] > 0.3  # selective on labelled noise
