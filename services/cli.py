@@ -161,7 +161,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     params = SimParams.parse(args.sim_param or [])
     summary = simulate(args.scene, Path(args.out), args.duration, args.seed, progress=not args.json, params=params)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
-          f"({args.duration} s, seed {args.seed}) and {summary['truth_boxes']} truth boxes to {args.out}")
+          f"({args.duration} s, seed {args.seed}), {summary['truth_boxes']} truth boxes and "
+          f"{summary['truth_poses']} truth poses to {args.out}")
     return 0
 
 
@@ -287,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hz)
 
     p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth")
-    p.add_argument("scene", choices=("objects",), help="scene to simulate")
+    p.add_argument("scene", choices=("objects", "rotation"), help="scene to simulate")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

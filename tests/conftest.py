@@ -58,9 +58,15 @@ def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, perio
 @pytest.fixture
 def router() -> Iterator[str]:
     """A zenoh router process on a free loopback port; yields its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+
+    def listening() -> bool:
+        with socket.socket() as s:
+            return s.connect_ex(("127.0.0.1", port)) == 0
+
     with spawn("router", "--listen", endpoint):
-        time.sleep(0.5)
+        wait_for(listening, 20, f"the router on {endpoint}")
         yield endpoint
 
 

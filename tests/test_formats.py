@@ -303,3 +303,47 @@ def test_bench_writers_and_filters_run_and_report_every_figure() -> None:
     assert all(r["etam_events_per_s"] > 0 and 0 < r["etam_bytes_per_event"] < 20 for r in results["writers"])
     (ba,) = results["filters"]
     assert ba["etam_noise_kept"] < 0.1 and ba["etam_signal_kept"] > 0.3  # selective on labelled noise
+
+
+def test_sim_rotation_writes_events_poses_omega_and_panorama(tmp_path: Path) -> None:
+    from scipy.spatial.transform import Rotation
+
+    out = tmp_path / "rot.h5"
+    run = subprocess.run(etam_argv("sim", "rotation", "--out", str(out), "--duration", "0.4", "--json"),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    with open_recording(out) as rec:
+        ev = rec.read_all()
+        poses, omega = rec.truth.poses, rec.truth.omega
+    with h5py.File(out) as f:
+        assert f["truth/panorama"].shape == (1024, 2048)
+    assert len(ev) > 10_000 and len(poses) == len(omega) == 20  # 50 Hz
+    assert np.allclose(poses[:, 1:4], 0)  # rotation only
+    # the truth is consistent: integrating omega (camera frame) reproduces the orientation change
+    r = Rotation.from_quat(poses[0, 4:8])
+    for i in range(1, len(poses)):
+        dt = poses[i, 0] - poses[i - 1, 0]
+        r = r * Rotation.from_rotvec((omega[i - 1, 1:] + omega[i, 1:]) / 2 * dt)
+    err = (r.inv() * Rotation.from_quat(poses[-1, 4:8])).magnitude()
+    assert np.rad2deg(err) < 0.5
+    rate_early = (ev["t"] < 100_000).sum()
+    rate_late = (ev["t"] > 300_000).sum()
+    assert rate_late > 3 * rate_early  # the camera speeds up: more events
+
+
+def test_live_rotation_source_publishes_truth_poses(router: str, rig: str) -> None:
+    import zenoh
+
+    from services.config import ZenohSettings
+    from services.messages import Pose, decode
+    from tests.conftest import spawn, wait_for
+
+    poses: list[Pose] = []
+    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+        sub = s.declare_subscriber(f"etam/{rig}/camera/cam0/truth/pose",
+                                   lambda x: poses.append(decode(x.payload.to_bytes(), Pose)))
+        with spawn("camera", "--source", "sim:rotation", "--connect", router, "--rig", rig):
+            wait_for(lambda: len(poses) >= 5, 60, "truth poses")
+        sub.undeclare()
+    assert all(p.omega is not None and abs(np.linalg.norm(p.q) - 1) < 1e-9 for p in poses)
+    assert [p.t for p in poses] == sorted(p.t for p in poses)

@@ -22,7 +22,7 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
     source = open_source(f"sim:{scene}", seed=seed, sim_params=params)
     assert isinstance(source, SimSource)
     end_us = int(duration_s * 1e6)
-    boxes = []
+    boxes, poses, omega = [], [], []
     with H5Writer(out, source.width, source.height) as writer, \
             tqdm(total=end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
         writer.write_calibration(Calibration(source.K))
@@ -31,11 +31,20 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
             writer.write(source.advance(until))
             for t_us, ids, bxs in source.truth(since, until):
                 boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
+            for t_us, p, q, w in source.poses(since, until):
+                poses.append([t_us / 1e6, *p, *q])
+                omega.append([t_us / 1e6, *w])
             bar.update((until - since) // 1000)
-        writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
+        if boxes:
+            writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
+        if poses:
+            writer.write_truth("poses", np.asarray(poses, np.float64))
+            writer.write_truth("omega", np.asarray(omega, np.float64))
+        if hasattr(source.scene, "panorama"):
+            writer.write_truth("panorama", source.scene.panorama)
         count = writer.count
     return {"file": str(out), "scene": scene, "events": count, "duration_s": duration_s, "seed": seed,
-            "truth_boxes": len(boxes)}
+            "truth_boxes": len(boxes), "truth_poses": len(poses)}
 
 
 def describe(path: Path, progress: bool = True) -> dict[str, Any]:

@@ -9,7 +9,7 @@ import time
 from services.camera.filters import FilterChain
 from services.camera.packetizer import Packetizer
 from services.camera.sources import EventSource
-from services.messages import CameraInfo, EventPacket, ImuPacket, Tracks
+from services.messages import CameraInfo, EventPacket, ImuPacket, Pose, Tracks
 from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
@@ -19,7 +19,8 @@ FAST_STEP_US = 20_000  # sensor time per step when playing as fast as possible (
 
 class CameraService(Service):
     """Publishes ``camera/<cam>/events`` (1 ms slices), ``info`` (each second and as a query),
-    ``imu`` when the source has inertial samples and ``truth/boxes`` when it has ground truth.
+    ``imu`` when the source has inertial samples, and ``truth/boxes`` / ``truth/pose`` when it has
+    ground truth.
 
     `rate` 1 plays in real time, 2 twice as fast, 0 as fast as the source and the network allow
     (then it waits for a first subscriber, and publishers block rather than drop, so a subscriber
@@ -49,6 +50,7 @@ class CameraService(Service):
         self._events = self.publisher("events", block=fast)
         self._truth = self.publisher("truth/boxes", block=fast)
         self._imu = self.publisher("imu", block=fast)
+        self._pose = self.publisher("truth/pose", block=fast)
         info = self.publisher("info")
         self.serve("info", lambda _req: self.info())
         info.publish(self.info())
@@ -93,6 +95,8 @@ class CameraService(Service):
             self._events.publish(EventPacket(stamp=stamp, width=w, height=h, events=chunk))
         for t_us, ids, boxes in self.source.truth(since_us, until_us):
             self._truth.publish(Tracks.from_boxes(t_us, ids, boxes))
+        for t_us, p, q, omega in self.source.poses(since_us, until_us):
+            self._pose.publish(Pose(stamp=t_us, t=t_us, p=p, q=q, omega=omega, child=self.name))
         imu = self.source.imu(since_us, until_us)
         if imu is not None:
             t, gyro, accel = imu

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -24,6 +25,17 @@ from services.messages import EVENT_DTYPE
 
 
 LOG_EPS = 1e-3  # keeps log intensity finite on black
+
+
+class Scene(Protocol):
+    """What the event simulator needs of a scene."""
+
+    width: int
+    height: int
+
+    def render(self, t_us: float) -> np.ndarray: ...
+
+    def max_speed_px_s(self, t_us: float) -> float: ...
 
 
 @dataclass
@@ -173,7 +185,7 @@ class ObjectsScene:
 class EventSimulator:
     """Turns a scene's log intensity over time into events (see the module docstring)."""
 
-    def __init__(self, scene: ObjectsScene, params: SimParams | None = None, seed: int = 0) -> None:
+    def __init__(self, scene: Scene, params: SimParams | None = None, seed: int = 0) -> None:
         self.scene = scene
         self.params = params or SimParams()
         self._rng = np.random.default_rng(seed + 1)

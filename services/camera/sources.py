@@ -14,6 +14,7 @@ import numpy as np
 
 from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
+from services.camera.rotation_scene import RotationScene
 from services.camera.simulator import EventSimulator, ObjectsScene, SimParams
 from services.messages import EVENT_DTYPE
 
@@ -41,17 +42,23 @@ class EventSource(Protocol):
 
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None: ...
 
+    def poses(self, since_us: int, until_us: int) -> list[TruthPose]: ...
+
 
 ImuSamples = tuple[np.ndarray, np.ndarray, np.ndarray]  # t_us, gyro rad/s (Nx3), accel m/s^2 (Nx3)
 
 
+TruthPose = tuple[int, np.ndarray, np.ndarray, np.ndarray | None]  # t_us, p (m), q (x y z w), omega (rad/s)
+
+
 class SimSource:
-    """`sim:objects`: the simulator's static-camera scene with moving objects and truth boxes."""
+    """A simulator scene: `sim:objects` (static camera, moving objects, truth boxes) or `sim:rotation`
+    (spinning camera, truth poses and angular velocity)."""
 
     done = False
     start_us = 0
 
-    def __init__(self, scene: ObjectsScene, sim: EventSimulator, name: str) -> None:
+    def __init__(self, scene: ObjectsScene | RotationScene, sim: EventSimulator, name: str) -> None:
         self.scene, self.sim, self.name = scene, sim, name
         self.width, self.height = scene.width, scene.height
         f = scene.focal_px
@@ -63,9 +70,18 @@ class SimSource:
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
         return None  # the objects scene's camera is static and has no IMU
 
+    def _truth_times(self, since_us: int, until_us: int) -> range:
+        return range((since_us // TRUTH_PERIOD_US + 1) * TRUTH_PERIOD_US, until_us + 1, TRUTH_PERIOD_US)
+
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
-        first = (since_us // TRUTH_PERIOD_US + 1) * TRUTH_PERIOD_US
-        return [(t, *self.scene.boxes(t)) for t in range(first, until_us + 1, TRUTH_PERIOD_US)]
+        if not isinstance(self.scene, ObjectsScene):
+            return []
+        return [(t, *self.scene.boxes(t)) for t in self._truth_times(since_us, until_us)]
+
+    def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
+        if not isinstance(self.scene, RotationScene):
+            return []
+        return [(t, *self.scene.pose(t), self.scene.omega(t)) for t in self._truth_times(since_us, until_us)]
 
 
 class FileSource:
@@ -134,6 +150,14 @@ class FileSource:
             return parts[0]  # a view on the chunk: no copy
         return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
 
+    def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
+        rows = self.recording.truth.poses  # TUM: t_s, p, q
+        if rows is None:
+            return []
+        t = np.round(rows[:, 0] * 1e6).astype(np.int64) + self._shift_us
+        sel = (t > since_us) & (t <= until_us)
+        return [(int(ti), r[1:4], r[4:8], None) for ti, r in zip(t[sel], rows[sel], strict=True)]
+
     def loaded_until_us(self) -> int | None:
         """Time of the last event already read from the file: advancing to it costs no copy."""
         return int(self._pending["t"][-1]) if len(self._pending) else None
@@ -148,7 +172,7 @@ class FileSource:
                 for tu in np.unique(sel[:, 0])]
 
 
-SIM_SCENES = ("objects",)
+SIM_SCENES = ("objects", "rotation")
 
 
 def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None) -> EventSource:
@@ -158,6 +182,9 @@ def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimPar
         if scene == "objects":
             sc = ObjectsScene(seed=seed)
             return SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)
+        if scene == "rotation":
+            rot = RotationScene(seed=seed)
+            return SimSource(rot, EventSimulator(rot, sim_params, seed=seed), spec)
         raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                           f"{', '.join('sim:' + s for s in SIM_SCENES)})")
     if spec == "usb" or spec.startswith("usb:"):
