@@ -57,9 +57,8 @@ def _ours(packets: list[np.ndarray]) -> tuple[float, np.ndarray]:
     return time.perf_counter() - t0, np.concatenate(kept)
 
 
-def _dv(packets: list[np.ndarray]) -> tuple[float, np.ndarray]:
-    import datetime
-
+def dv_stores(packets: list[np.ndarray]) -> list:
+    """dv-processing EventStores of the packets (built event by event: its only way in from numpy)."""
     import dv_processing as dv
 
     stores = []
@@ -68,6 +67,15 @@ def _dv(packets: list[np.ndarray]) -> tuple[float, np.ndarray]:
         for e in p:
             store.push_back(int(e["t"]), int(e["x"]), int(e["y"]), bool(e["p"]))
         stores.append(store)
+    return stores
+
+
+def _dv(packets: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    import datetime
+
+    import dv_processing as dv
+
+    stores = dv_stores(packets)
     filt = dv.noise.BackgroundActivityNoiseFilter((WIDTH, HEIGHT), datetime.timedelta(microseconds=WINDOW_US))
     out = []
     t0 = time.perf_counter()

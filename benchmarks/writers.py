@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.filters import PACKET_US, _packets, labelled_events
+from benchmarks.filters import PACKET_US, _packets, dv_stores, labelled_events
 from services.camera.formats.aedat4 import Aedat4Writer
 from services.camera.recorder import McapRecorder
 from services.messages import EventPacket
@@ -41,12 +41,7 @@ def _aedat4(packets: list[np.ndarray], path: Path) -> float:
 def _dv(packets: list[np.ndarray], path: Path) -> float:
     import dv_processing as dv
 
-    stores = []
-    for p in packets:
-        store = dv.EventStore()
-        for e in p:
-            store.push_back(int(e["t"]), int(e["x"]), int(e["y"]), bool(e["p"]))
-        stores.append(store)
+    stores = dv_stores(packets)
     t0 = time.perf_counter()
     writer = dv.io.MonoCameraWriter(str(path), dv.io.MonoCameraWriter.EventOnlyConfig("bench", (WIDTH, HEIGHT)))
     for store in stores:

@@ -9,6 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from services.camera.formats import Calibration, open_recording
+from services.camera.formats.recording import EventWriter
 from services.camera.formats.hdf5 import H5Writer
 from services.camera.simulator import SimParams
 from services.camera.sources import SimSource, open_source
@@ -84,7 +85,7 @@ def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
     suffix = dst.suffix.lower()
     with open_recording(src) as rec:
         if suffix in (".h5", ".hdf5"):
-            writer: Any = H5Writer(dst, rec.width, rec.height)
+            writer: EventWriter = H5Writer(dst, rec.width, rec.height)
             if rec.calibration is not None:
                 writer.write_calibration(rec.calibration)
             for name in rec.truth.present():

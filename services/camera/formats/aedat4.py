@@ -20,7 +20,7 @@ import lz4.frame
 import numpy as np
 
 from services.camera.formats import kernels
-from services.camera.formats.recording import CHUNK_EVENTS, FormatError, Recording
+from services.camera.formats.recording import CHUNK_EVENTS, EventWriter, FormatError, Recording
 from services.messages import EVENT_DTYPE
 
 MAGIC = b"#!AER-DAT4.0\r\n"
@@ -222,7 +222,7 @@ def _event_payload(events: np.ndarray) -> bytes:
     return struct.pack("<I", len(body)) + body
 
 
-class Aedat4Writer:
+class Aedat4Writer(EventWriter):
     """Writes events to an AEDAT 4.0 file, one LZ4-compressed packet per `write`."""
 
     def __init__(self, path: str | Path, width: int, height: int, source: str = "ETAM") -> None:
@@ -240,9 +240,3 @@ class Aedat4Writer:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> Aedat4Writer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.camera.formats.recording import CHUNK_EVENTS, Calibration, FormatError, Recording, events_from_columns
+from services.camera.formats.recording import (
+    CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, events_from_columns,
+)
 from services.messages import EVENT_DTYPE
 
 ECD_SIZE = (240, 180)  # DAVIS240C, the sensor of every ECD sequence (sensor.txt beside may say otherwise)
@@ -122,7 +124,7 @@ class EcdRecording(Recording):
         return 0, "unreadable text"
 
 
-class EcdWriter:
+class EcdWriter(EventWriter):
     """Writes `events.txt` (t in seconds with 9 decimals, x, y, p), `calib.txt` when calibrated, and
     `sensor.txt` (`width height`, an ETAM addition: ECD text has no place for the sensor size)."""
 
@@ -149,9 +151,3 @@ class EcdWriter:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> EcdWriter:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -12,7 +12,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from services.camera.formats.recording import CHUNK_EVENTS, Calibration, FormatError, Recording, events_from_columns
+from services.camera.formats.recording import (
+    CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, events_from_columns,
+)
 
 MAGIC = b"\x89HDF\r\n\x1a\n"
 DSEC_SIZE = (640, 480)
@@ -65,7 +67,7 @@ class H5Recording(Recording):
         self._file.close()
 
 
-class H5Writer:
+class H5Writer(EventWriter):
     """Appends events (and at the end calibration and truth) to an ETAM HDF5 file."""
 
     def __init__(self, path: str | Path, width: int, height: int) -> None:
@@ -98,9 +100,3 @@ class H5Writer:
 
     def close(self) -> None:
         self._file.close()
-
-    def __enter__(self) -> H5Writer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -88,6 +88,24 @@ class Recording(ABC):
         return np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
 
 
+class EventWriter(ABC):
+    """A file being written: `write` event arrays, then `close` (or use it as a context manager)."""
+
+    count = 0
+
+    @abstractmethod
+    def write(self, events: np.ndarray) -> None: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def __enter__(self) -> EventWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def events_from_columns(t_us: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray) -> np.ndarray:
     """One EVENT_DTYPE array from four columns."""
     ev = np.empty(len(t_us), EVENT_DTYPE)
