@@ -34,7 +34,7 @@ def test_simulator_events_fall_on_the_moving_objects() -> None:
     sim = EventSimulator(scene, seed=1)
     sim.advance(2_990_000)
     ev = sim.advance(3_000_000)
-    ids, boxes = scene.boxes(3_000_000)
+    ids, boxes, _ = scene.boxes(3_000_000)
     assert len(ids) >= 1
     inside = np.zeros(len(ev), bool)
     for x, y, w, h in boxes:
@@ -90,7 +90,7 @@ def test_tracker_follows_simulated_objects() -> None:
     for t in range(10_000, 3_000_001, 10_000):
         tracker.accept(sim.advance(t))
         out = tracker.generate(t)
-        _, truth = scene.boxes(t)
+        _, truth, _ = scene.boxes(t)
         if t > 500_000 and len(truth):
             total += len(truth)
             live = out.boxes[out.states == TRACKED]

@@ -173,7 +173,7 @@ def test_file_source_plays_loops_and_publishes_truth(tmp_path: Path) -> None:
     assert src.start_us == 1000
     first = src.advance(1495)
     assert len(first) == 50 and first["t"][-1] == 1490
-    (t, ids, boxes), = src.truth(1000, 1600)
+    (t, ids, boxes, solid), = src.truth(1000, 1600)
     assert t == 1500 and ids.tolist() == [7, 8] and boxes.shape == (2, 4)
     lap = src.advance(3000)  # the rest, then the second lap shifted to start after the first
     assert np.all(np.diff(lap["t"]) > 0) and lap["t"][50] == 1991 and not src.done
@@ -190,7 +190,13 @@ def test_sim_and_info_commands(tmp_path: Path) -> None:
     info = subprocess.run(etam_argv("info", str(out), "--json"), capture_output=True, text=True, timeout=60)
     facts = json.loads(info.stdout)
     assert facts["events"] == summary["events"] > 10_000 and facts["format"] == "etam-hdf5"
-    assert (facts["width"], facts["height"]) == (346, 260) and facts["ground_truth"] == ["boxes"]
+    assert (facts["width"], facts["height"]) == (346, 260) and facts["ground_truth"] == ["boxes", "boxes_3d"]
+    with open_recording(out) as rec:  # depth from size holds in the truth: w_px = f * size_m / z
+        boxes, solid = rec.truth.boxes, rec.truth.boxes_3d
+        inside = (boxes[:, 2] > 0) & (boxes[:, 2] + boxes[:, 4] < 345)  # not clipped at the image border
+        f = rec.calibration.K[0, 0]
+        assert len(solid) == len(boxes) and inside.any()
+        assert np.allclose(boxes[inside, 4], f * solid[inside, 3] / solid[inside, 2], rtol=1e-3, atol=0.5)
     assert 0.9 < facts["duration_s"] <= 1.0 and facts["calibrated"]
     bad = subprocess.run(etam_argv("info", str(tmp_path / "nope.h5")), capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "nope.h5: no such file" in bad.stderr and "Traceback" not in bad.stderr

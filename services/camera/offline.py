@@ -23,21 +23,23 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
     source = open_source(f"sim:{scene}", seed=seed, sim_params=params)
     assert isinstance(source, SimSource)
     end_us = int(duration_s * 1e6)
-    boxes, poses, omega = [], [], []
+    boxes, boxes_3d, poses, omega = [], [], [], []
     with H5Writer(out, source.width, source.height) as writer, \
             tqdm(total=end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
         writer.write_calibration(Calibration(source.K))
         for since in range(0, end_us, STEP_US):
             until = min(since + STEP_US, end_us)
             writer.write(source.advance(until))
-            for t_us, ids, bxs in source.truth(since, until):
+            for t_us, ids, bxs, solid in source.truth(since, until):
                 boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
+                boxes_3d.extend(solid.tolist())
             for t_us, p, q, w in source.poses(since, until):
                 poses.append([t_us / 1e6, *p, *q])
                 omega.append([t_us / 1e6, *w])
             bar.update((until - since) // 1000)
         if boxes:
             writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
+            writer.write_truth("boxes_3d", np.asarray(boxes_3d, np.float64).reshape(-1, 4))
         if poses:
             writer.write_truth("poses", np.asarray(poses, np.float64))
             writer.write_truth("omega", np.asarray(omega, np.float64))

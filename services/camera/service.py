@@ -93,8 +93,9 @@ class CameraService(Service):
         w, h = self.source.width, self.source.height
         for stamp, chunk in self.packetizer.generate(until_us):
             self._events.publish(EventPacket(stamp=stamp, width=w, height=h, events=chunk))
-        for t_us, ids, boxes in self.source.truth(since_us, until_us):
-            self._truth.publish(Tracks.from_boxes(t_us, ids, boxes))
+        for t_us, ids, boxes, solid in self.source.truth(since_us, until_us):
+            extra = {} if solid is None else {"xyz": solid[:, :3].astype("<f4"), "size_m": solid[:, 3].astype("<f4")}
+            self._truth.publish(Tracks.from_boxes(t_us, ids, boxes, **extra))
         for t_us, p, q, omega in self.source.poses(since_us, until_us):
             self._pose.publish(Pose(stamp=t_us, t=t_us, p=p, q=q, omega=omega, child=self.name))
         imu = self.source.imu(since_us, until_us)

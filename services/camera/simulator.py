@@ -82,7 +82,7 @@ class MovingObject:
 
     ident: int
     texture: np.ndarray
-    size_m: float  # metric width, for depth-from-size
+    size_m: float  # metric width (of the texture's full width in pixels at depth_m), for depth from size
     depth_m: float
     times_us: np.ndarray
     xs: np.ndarray  # top-left x at each waypoint
@@ -117,6 +117,7 @@ class ObjectsScene:
         size_m = float(rng.uniform(0.3, 0.8))
         depth_m = float(rng.uniform(2.0, 5.0))
         w = int(np.clip(size_m / depth_m * self.focal_px, 16, self.width // 3))
+        size_m = w * depth_m / self.focal_px  # exactly the metric width that images to w pixels
         h = int(np.clip(w * rng.uniform(0.6, 1.4), 12, self.height // 2))
         n_way = 7
         xs = rng.uniform(-0.2 * w, self.width - 0.8 * w, n_way)
@@ -167,10 +168,12 @@ class ObjectsScene:
             out[patch] = np.log(img[patch] + LOG_EPS)
         return out
 
-    def boxes(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
-        """Ground truth: ids and boxes (x, y, w, h, clipped to the image) of objects in view."""
+    def boxes(self, t_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ground truth of the objects in view: ids, boxes (x, y, w, h, clipped to the image), and
+        3D rows (x, y, z of the object's centre in the camera frame in m, its width in m)."""
         ph = self._phase(t_us)
-        ids, out = [], []
+        ids, out, solid = [], [], []
+        c = (self.width / 2, self.height / 2)
         for obj in self.objects:
             x, y = obj.position(ph)
             h, w = obj.texture.shape
@@ -179,7 +182,11 @@ class ObjectsScene:
             if x1 - x0 >= 0.25 * w and y1 - y0 >= 0.25 * h:  # at least a quarter in view
                 ids.append(obj.ident)
                 out.append((x0, y0, x1 - x0, y1 - y0))
-        return np.asarray(ids, np.int32), np.asarray(out, np.float32).reshape(-1, 4)
+                z = obj.depth_m
+                solid.append(((x + w / 2 - c[0]) * z / self.focal_px, (y + h / 2 - c[1]) * z / self.focal_px, z,
+                              obj.size_m))
+        return (np.asarray(ids, np.int32), np.asarray(out, np.float32).reshape(-1, 4),
+                np.asarray(solid, np.float32).reshape(-1, 4))
 
 
 class EventSimulator:

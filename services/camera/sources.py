@@ -25,7 +25,7 @@ class SourceError(ValueError):
     """A source that cannot be opened; the text names it and says why."""
 
 
-TruthBoxes = tuple[int, np.ndarray, np.ndarray]  # t_us, ids, boxes (x, y, w, h)
+TruthBoxes = tuple[int, np.ndarray, np.ndarray, np.ndarray | None]  # t_us, ids, boxes, 3D rows (x y z m, size m)
 
 
 class EventSource(Protocol):
@@ -100,8 +100,10 @@ class FileSource:
         self.error: FormatError | None = None  # a fault in the file, met after the good events before it
         self._fill()
         self.start_us = int(self._pending["t"][0]) if len(self._pending) else 0
-        boxes = recording.truth.boxes
-        self._truth_rows = boxes[np.argsort(boxes[:, 0], kind="stable")] if boxes is not None else None
+        boxes, solid = recording.truth.boxes, recording.truth.boxes_3d
+        order = np.argsort(boxes[:, 0], kind="stable") if boxes is not None else None
+        self._truth_rows = boxes[order] if boxes is not None else None
+        self._truth_3d = solid[order] if solid is not None and boxes is not None and len(solid) == len(boxes) else None
         self._imu = recording.imu()  # IMU streams are small: read once
 
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
@@ -167,9 +169,14 @@ class FileSource:
             return []
         rows = self._truth_rows
         t = rows[:, 0] + self._shift_us
-        sel = rows[(t > since_us) & (t <= until_us)]
-        return [(int(tu) + self._shift_us, sel[sel[:, 0] == tu, 1].astype(np.int32), sel[sel[:, 0] == tu, 2:6])
-                for tu in np.unique(sel[:, 0])]
+        mask = (t > since_us) & (t <= until_us)
+        sel, solid = rows[mask], self._truth_3d[mask] if self._truth_3d is not None else None
+        out = []
+        for tu in np.unique(sel[:, 0]):
+            at = sel[:, 0] == tu
+            out.append((int(tu) + self._shift_us, sel[at, 1].astype(np.int32), sel[at, 2:6],
+                        solid[at] if solid is not None else None))
+        return out
 
 
 SIM_SCENES = ("objects", "rotation")

@@ -52,7 +52,7 @@ class H5Recording(Recording):
                 str(dist.attrs.get("model", "radtan")) if dist is not None else "none",
                 np.asarray(dist[:], np.float64) if dist is not None else np.zeros(0),
             )
-        for name in ("poses", "boxes", "omega"):
+        for name in ("poses", "boxes", "boxes_3d", "omega"):
             if f"truth/{name}" in f:
                 setattr(self.truth, name, np.asarray(f[f"truth/{name}"][:]))
 

@@ -39,10 +39,11 @@ class Truth:
 
     poses: np.ndarray | None = None  # N x 8 TUM rows (t_s, tx ty tz, qx qy qz qw), T_world_cam
     boxes: np.ndarray | None = None  # M x 6 (t_us, id, x, y, w, h)
+    boxes_3d: np.ndarray | None = None  # M x 4 beside `boxes`: object centre x y z (m, camera frame), width (m)
     omega: np.ndarray | None = None  # N x 4 (t_s, wx wy wz rad/s)
 
     def present(self) -> list[str]:
-        return [name for name in ("poses", "boxes", "omega") if getattr(self, name) is not None]
+        return [name for name in ("poses", "boxes", "boxes_3d", "omega") if getattr(self, name) is not None]
 
 
 class Recording(ABC):
