@@ -91,13 +91,18 @@ def _cmd_up(args: argparse.Namespace) -> int:
     opts = UpOptions(
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
-        log_level=args.log_level, camera_args=(("--rate", str(args.rate)) + (("--loop",) if args.loop else ())),
+        log_level=args.log_level,
+        camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
+                     *(a for f in args.filter or [] for a in ("--filter", f))),
     )
     from services.camera.sources import open_source
 
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
-    open_source(args.source)  # a bad source fails here, before anything starts
+    from services.camera.filters import parse_chain
+
+    source = open_source(args.source)  # a bad source or filter fails here, before anything starts
+    parse_chain([f for f in args.filter or [] if f != "undistort"], source.width, source.height)
     return up(opts)
 
 
@@ -223,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", default="sim:objects", help="event source: sim:objects (default) or a recording")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed of a recording (0: as fast as possible)")
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
+    p.add_argument("--filter", action="append", metavar="NAME[:ARGS]", help="camera filter chain (see etam camera)")
     p.add_argument("--rig", help="rig name (env ETAM_RIG; default: host name)")
     p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")

@@ -170,6 +170,9 @@ def test_bad_flags_give_clear_errors(tmp_path) -> None:  # noqa: ANN001
     assert up.returncode == 2 and "--duration" in up.stderr
     flag = subprocess.run(etam_argv("up", "--frobnicate"), capture_output=True, text=True, timeout=30)
     assert flag.returncode == 2 and "frobnicate" in flag.stderr
+    fog = subprocess.run(etam_argv("up", "--filter", "fog", "--duration", "1"), capture_output=True, text=True,
+                         timeout=30)
+    assert fog.returncode == 2 and "filter 'fog'" in fog.stderr and "Traceback" not in fog.stderr
 
 
 def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str) -> None:
