@@ -292,15 +292,6 @@ class Service:
 
         self._declared.append(self._session().declare_queryable(keyexpr, answer))
 
-    def stop(self) -> None:
-        """Ask the service to shut down (thread-safe)."""
-        if self._loop is not None and self._stop is not None:
-            self._loop.call_soon_threadsafe(self._stop.set)
-
-    @property
-    def stopping(self) -> bool:
-        return self._stop is not None and self._stop.is_set()
-
     # ------------------------------------------------------------------------ to override --
     async def main(self) -> None:
         """The service's work; runs until it returns or the service is stopped."""
