@@ -57,3 +57,11 @@ def test_router_config_serves_a_rig(tmp_path: Path, rig: str) -> None:
                                            "--connect", endpoint), cwd=ROOT, capture_output=True, text=True, timeout=30)
             return out.returncode == 0 and "CameraInfo" in out.stdout
         wait_for(heard, 30, "CameraInfo through the deployed router config", period_s=0.5)
+
+
+@pytest.mark.parametrize("command", ["up", "router", "camera", "tracker", "web", "ls", "echo", "hz", "sim", "info",
+                                     "convert", "record", "replay", "bench"])
+def test_every_command_has_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args([command, "--help"])
+    assert exit_info.value.code == 0 and f"usage: etam {command}" in capsys.readouterr().out
