@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hz)
 
     p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth")
-    p.add_argument("scene", choices=("objects", "rotation"), help="scene to simulate")
+    p.add_argument("scene", choices=("objects", "rotation", "6dof"), help="scene to simulate")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

@@ -353,3 +353,21 @@ def test_live_rotation_source_publishes_truth_poses(router: str, rig: str) -> No
         sub.undeclare()
     assert all(p.omega is not None and abs(np.linalg.norm(p.q) - 1) < 1e-9 for p in poses)
     assert [p.t for p in poses] == sorted(p.t for p in poses)
+
+
+def test_sim_6dof_writes_events_poses_and_depth_maps(tmp_path: Path) -> None:
+    from services.camera.sixdof_scene import SixDofScene
+
+    out = tmp_path / "6d.h5"
+    run = subprocess.run(etam_argv("sim", "6dof", "--out", str(out), "--duration", "0.3", "--json"),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    with h5py.File(out) as f:
+        t, maps = f["truth/depth/t"][:], f["truth/depth/maps"][:]
+        poses = f["truth/poses"][:]
+    assert json.loads(run.stdout)["events"] > 10_000
+    assert t.tolist() == [100_000, 200_000, 300_000] and maps.shape == (3, 260, 346)
+    assert np.isfinite(maps).all() and 0.5 < maps.min() and maps.max() < 5.5  # boxes to the back wall
+    assert np.linalg.norm(poses[-1, 1:4]) > 0.01  # the camera moves
+    at_rest = SixDofScene().depth(0)  # at t = 0 the camera is the world frame: the back wall is at z = 5
+    assert np.isclose(at_rest.max(), 5.0, atol=1e-3)

@@ -23,7 +23,7 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
     source = open_source(f"sim:{scene}", seed=seed, sim_params=params)
     assert isinstance(source, SimSource)
     end_us = int(duration_s * 1e6)
-    boxes, boxes_3d, poses, omega = [], [], [], []
+    boxes, boxes_3d, poses, omega, depth_t, depth_maps = [], [], [], [], [], []
     with H5Writer(out, source.width, source.height) as writer, \
             tqdm(total=end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
         writer.write_calibration(Calibration(source.K))
@@ -36,6 +36,9 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
             for t_us, p, q, w in source.poses(since, until):
                 poses.append([t_us / 1e6, *p, *q])
                 omega.append([t_us / 1e6, *w])
+            for t_us, depth in source.depths(since, until):
+                depth_t.append(t_us)
+                depth_maps.append(depth)
             bar.update((until - since) // 1000)
         if boxes:
             writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
@@ -43,6 +46,9 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
         if poses:
             writer.write_truth("poses", np.asarray(poses, np.float64))
             writer.write_truth("omega", np.asarray(omega, np.float64))
+        if depth_maps:
+            writer.write_truth("depth/t", np.asarray(depth_t, np.int64))
+            writer.write_truth("depth/maps", np.stack(depth_maps).astype(np.float32))
         if hasattr(source.scene, "panorama"):
             writer.write_truth("panorama", source.scene.panorama)
         count = writer.count

@@ -9,7 +9,7 @@ import time
 from services.camera.filters import FilterChain
 from services.camera.packetizer import Packetizer
 from services.camera.sources import EventSource
-from services.messages import CameraInfo, EventPacket, ImuPacket, Pose, Tracks
+from services.messages import CameraInfo, EventPacket, ImuPacket, Pose, Tracks, image_from_array
 from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ class CameraService(Service):
         self._truth = self.publisher("truth/boxes", block=fast)
         self._imu = self.publisher("imu", block=fast)
         self._pose = self.publisher("truth/pose", block=fast)
+        self._depth = self.publisher("truth/depth", block=fast)
         info = self.publisher("info")
         self.serve("info", lambda _req: self.info())
         info.publish(self.info())
@@ -98,6 +99,8 @@ class CameraService(Service):
             self._truth.publish(Tracks.from_boxes(t_us, ids, boxes, **extra))
         for t_us, p, q, omega in self.source.poses(since_us, until_us):
             self._pose.publish(Pose(stamp=t_us, t=t_us, p=p, q=q, omega=omega, child=self.name))
+        for t_us, depth in getattr(self.source, "depths", lambda *_: [])(since_us, until_us):
+            self._depth.publish(image_from_array(t_us, depth, "rawf32"))
         imu = self.source.imu(since_us, until_us)
         if imu is not None:
             t, gyro, accel = imu

@@ -16,9 +16,11 @@ from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.camera.rotation_scene import RotationScene
 from services.camera.simulator import EventSimulator, ObjectsScene, SimParams
+from services.camera.sixdof_scene import SixDofScene
 from services.messages import EVENT_DTYPE
 
-TRUTH_PERIOD_US = 20_000  # the simulator's boxes at 50 Hz
+TRUTH_PERIOD_US = 20_000  # the simulator's boxes and poses at 50 Hz
+DEPTH_PERIOD_US = 100_000  # its depth maps at 10 Hz
 
 
 class SourceError(ValueError):
@@ -52,13 +54,14 @@ TruthPose = tuple[int, np.ndarray, np.ndarray, np.ndarray | None]  # t_us, p (m)
 
 
 class SimSource:
-    """A simulator scene: `sim:objects` (static camera, moving objects, truth boxes) or `sim:rotation`
-    (spinning camera, truth poses and angular velocity)."""
+    """A simulator scene: `sim:objects` (static camera, moving objects, truth boxes), `sim:rotation`
+    (spinning camera, truth poses and angular velocity) or `sim:6dof` (moving camera, 3D structure,
+    truth poses and depth maps)."""
 
     done = False
     start_us = 0
 
-    def __init__(self, scene: ObjectsScene | RotationScene, sim: EventSimulator, name: str) -> None:
+    def __init__(self, scene: ObjectsScene | RotationScene | SixDofScene, sim: EventSimulator, name: str) -> None:
         self.scene, self.sim, self.name = scene, sim, name
         self.width, self.height = scene.width, scene.height
         f = scene.focal_px
@@ -79,9 +82,16 @@ class SimSource:
         return [(t, *self.scene.boxes(t)) for t in self._truth_times(since_us, until_us)]
 
     def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
-        if not isinstance(self.scene, RotationScene):
+        if not hasattr(self.scene, "pose"):
             return []
         return [(t, *self.scene.pose(t), self.scene.omega(t)) for t in self._truth_times(since_us, until_us)]
+
+    def depths(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray]]:
+        """Metric depth maps at DEPTH_PERIOD_US, for scenes with 3D structure."""
+        if not hasattr(self.scene, "depth"):
+            return []
+        first = (since_us // DEPTH_PERIOD_US + 1) * DEPTH_PERIOD_US
+        return [(t, self.scene.depth(t)) for t in range(first, until_us + 1, DEPTH_PERIOD_US)]
 
 
 class FileSource:
@@ -179,7 +189,7 @@ class FileSource:
         return out
 
 
-SIM_SCENES = ("objects", "rotation")
+SIM_SCENES = ("objects", "rotation", "6dof")
 
 
 def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None) -> EventSource:
@@ -189,9 +199,9 @@ def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimPar
         if scene == "objects":
             sc = ObjectsScene(seed=seed)
             return SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)
-        if scene == "rotation":
-            rot = RotationScene(seed=seed)
-            return SimSource(rot, EventSimulator(rot, sim_params, seed=seed), spec)
+        if scene in ("rotation", "6dof"):
+            sc3 = RotationScene(seed=seed) if scene == "rotation" else SixDofScene(seed=seed)
+            return SimSource(sc3, EventSimulator(sc3, sim_params, seed=seed), spec)
         raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                           f"{', '.join('sim:' + s for s in SIM_SCENES)})")
     if spec == "usb" or spec.startswith("usb:"):

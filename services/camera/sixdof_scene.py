@@ -1,0 +1,108 @@
+"""`6dof`: a hand-held-like camera moving in front of textured 3D structure (seed 001's setting).
+
+A room of textured planes (back wall at 5 m, floor, side walls) with textured boxes at 0.8-3 m. Each
+pixel's ray is intersected with every surface (vectorised over pixels), the nearest hit gives the
+intensity (from a texture in metric surface coordinates) and the depth. The camera's position and
+orientation are smooth periodic functions of time, so poses and depth maps are exact ground truth.
+The world frame is the camera's frame at t = 0 (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from services.camera.simulator import _texture
+
+TEXTURE_PX_PER_M = 200.0
+
+
+class SixDofScene:
+    """Renders log intensity and depth for the camera pose at any time; see the module docstring."""
+
+    def __init__(self, width: int = 346, height: int = 260, seed: int = 0, period_s: float = 10.0) -> None:
+        self.width, self.height = width, height
+        rng = np.random.default_rng(seed)
+        self.focal_px = 0.9 * width
+        self.period_us = int(period_s * 1e6)
+        self._w = 2 * np.pi / period_s
+        tex = cv2.resize(_texture(rng, 128, 128), (512, 512), interpolation=cv2.INTER_CUBIC)
+        self._log_tex = np.log(np.clip(tex, 0.05, None) + 1e-3).astype(np.float32)
+        # planes: (axis, coordinate); boxes: (lo xyz, hi xyz)
+        self.planes = [(2, 5.0), (1, 1.2), (0, -2.5), (0, 2.5)]
+        self.boxes = []
+        for _ in range(3):
+            size = rng.uniform(0.3, 0.6, 3)
+            centre = np.array([rng.uniform(-1.0, 1.0), rng.uniform(0.3, 1.2) - size[1] / 2, rng.uniform(1.2, 3.0)])
+            self.boxes.append((centre - size / 2, centre + size / 2))
+        ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
+        rays = np.stack([(xs - width / 2) / self.focal_px, (ys - height / 2) / self.focal_px, np.ones_like(xs)], -1)
+        self._rays = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
+        self._reach_px = self.focal_px + np.hypot(width, height) / 2
+
+    def _motion(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position (m) and yaw, pitch, roll (rad): sums of slow sines, all zero at t = 0."""
+        t = (t_us % self.period_us) / 1e6
+        w = self._w
+        p = np.array([0.4 * np.sin(w * t), 0.15 * np.sin(2 * w * t), 0.5 * (1 - np.cos(w * t))])
+        a = np.array([0.25 * np.sin(w * t), 0.1 * np.sin(3 * w * t), 0.08 * np.sin(2 * w * t)])
+        return p, a
+
+    def rotation(self, t_us: float) -> Rotation:
+        return Rotation.from_euler("YXZ", self._motion(t_us)[1])
+
+    def pose(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
+        """Position (m) and quaternion x y z w of T_world_cam."""
+        return self._motion(t_us)[0], self.rotation(t_us).as_quat()
+
+    def omega(self, t_us: float) -> np.ndarray:
+        h = 50.0
+        return (self.rotation(t_us - h).inv() * self.rotation(t_us + h)).as_rotvec() / (2 * h * 1e-6)
+
+    def max_speed_px_s(self, t_us: float) -> float:
+        h = 500.0
+        v = np.linalg.norm(self._motion(t_us + h)[0] - self._motion(t_us - h)[0]) / (2 * h * 1e-6)
+        return float(np.linalg.norm(self.omega(t_us)) * self._reach_px + v / 0.5 * self.focal_px)
+
+    def _hits(self, t_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per pixel: ray length to the nearest surface, and that point's two texture coordinates (m)."""
+        o, _ = self._motion(t_us)
+        d = (self._rays @ self.rotation(t_us).as_matrix().T).astype(np.float32)
+        inv = 1.0 / np.where(d == 0, np.float32(1e-9), d)
+        best = np.full(len(d), np.inf, np.float32)
+        u = np.zeros(len(d), np.float32)
+        v = np.zeros(len(d), np.float32)
+        for axis, c in self.planes:
+            dist = (c - o[axis]) * inv[:, axis]
+            closer = (dist > 0) & (dist < best)
+            a, b = [k for k in range(3) if k != axis]
+            best[closer] = dist[closer]
+            u[closer] = o[a] + dist[closer] * d[closer, a]
+            v[closer] = o[b] + dist[closer] * d[closer, b]
+        for lo, hi in self.boxes:
+            t0, t1 = (lo - o) * inv, (hi - o) * inv
+            near, far = np.minimum(t0, t1), np.maximum(t0, t1)
+            face = near.argmax(axis=1)
+            dist = near[np.arange(len(d)), face]
+            closer = (dist <= far.min(axis=1)) & (dist > 0) & (dist < best)
+            idx = np.flatnonzero(closer)
+            f = face[idx]
+            a, b = np.where(f == 0, 1, 0), np.where(f == 2, 1, 2)  # the two axes along the face
+            best[idx] = dist[idx]
+            u[idx] = o[a] + dist[idx] * d[idx, a] + 7.0 * f  # faces get different texture patches
+            v[idx] = o[b] + dist[idx] * d[idx, b]
+        return best, u, v
+
+    def render(self, t_us: float) -> np.ndarray:
+        _, u, v = self._hits(t_us)
+        n = self._log_tex.shape[0]
+        map_x = (u * TEXTURE_PX_PER_M % n).astype(np.float32).reshape(self.height, self.width)
+        map_y = (v * TEXTURE_PX_PER_M % n).astype(np.float32).reshape(self.height, self.width)
+        return cv2.remap(self._log_tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+    def depth(self, t_us: float) -> np.ndarray:
+        """Metric depth (z in the camera frame) of every pixel, float32, NaN where nothing is hit."""
+        s, _, _ = self._hits(t_us)
+        z = s * self._rays[:, 2]
+        return np.where(np.isfinite(z), z, np.nan).astype(np.float32).reshape(self.height, self.width)
