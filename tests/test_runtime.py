@@ -95,3 +95,32 @@ def test_wakes_a_waiting_consumer_from_another_thread_and_skips_malformed() -> N
             pass
 
     asyncio.run(main())
+
+
+def test_launcher_reads_message_headers_without_the_arrays() -> None:
+    import msgpack
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from services.launcher import _header
+    from services.messages import Stats
+
+    packet = EventPacket(seq=7, stamp=1, width=8, height=8, events=np.zeros(123, EVENT_DTYPE)).encode()
+    assert _header(packet) == {"type": "EventPacket", "seq": 7, "count": 123}
+    assert _header(Tracks.from_boxes(0, [1, 2], [[0, 0, 1, 1], [1, 1, 1, 1]]).encode())["count"] == 2
+    assert "count" not in _header(Stats(service="a", name="b", keys=[]).encode())
+
+    values = st.recursive(st.none() | st.integers(-(2**63), 2**63 - 1) | st.text(max_size=4) | st.binary(max_size=8),
+                          lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
+                                                                                      max_size=3), max_leaves=8)
+
+    @given(st.binary(max_size=64) | st.dictionaries(st.sampled_from(["type", "seq", "events", "id", "x"]), values,
+                                                   max_size=4).map(msgpack.packb))
+    @settings(max_examples=300, deadline=None)
+    def garbage_is_refused_with_known_errors(payload: bytes) -> None:
+        try:
+            _header(payload)
+        except (ValueError, TypeError, LookupError, msgpack.UnpackException):
+            pass
+
+    garbage_is_refused_with_known_errors()
