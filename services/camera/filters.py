@@ -16,36 +16,48 @@ import cv2
 import numba
 import numpy as np
 
+from services.messages import EVENT_DTYPE
+
 
 @numba.njit(cache=True, nogil=True)
-def _ba_kernel(events, support, keep, window_us, width, height, base_us):  # noqa: ANN001, ANN202
+def _ba_kernel(events, support, out, window_us, width, height, base_us):  # noqa: ANN001, ANN202
     """Keep an event when a neighbour (8-connected, not itself) fired within `window_us` before it.
 
     Each event stamps its time (int32, relative to `base_us`: half the memory traffic of int64) on
     its 8 neighbours in `support`, which is padded by one pixel all round so that nothing needs a
-    bounds check; an event is then kept by one read of its own pixel there."""
+    bounds check; an event is then kept by one read of its own pixel there. Kept events are copied
+    to the front of `out`; their count is returned."""
+    n = 0
     for i in range(len(events)):
         e = events[i]
         x, y = np.int64(e.x), np.int64(e.y)
         if x >= width or y >= height:
-            keep[i] = False
             continue
         t = np.int32(e.t - base_us)
-        keep[i] = np.int64(t) - support[y + 1, x + 1] <= window_us
+        if np.int64(t) - support[y + 1, x + 1] <= window_us:
+            out[n] = e
+            n += 1
         for dy in range(3):
             for dx in range(3):
                 if dy != 1 or dx != 1:
                     support[y + dy, x + dx] = t
+    return n
 
 
 @numba.njit(cache=True, nogil=True)
-def _refractory_kernel(t, x, y, last, keep, period_us):  # noqa: ANN001, ANN202
-    """Drop an event when its own pixel fired less than `period_us` before."""
-    for i in range(len(t)):
-        xi, yi = x[i], y[i]
-        keep[i] = t[i] - last[yi, xi] >= period_us
-        if keep[i]:
-            last[yi, xi] = t[i]
+def _refractory_kernel(events, last, out, period_us, width, height):  # noqa: ANN001, ANN202
+    """Drop an event when its own pixel fired less than `period_us` before; copy the kept ones to
+    the front of `out` and return their count."""
+    n = 0
+    for i in range(len(events)):
+        e = events[i]
+        if e.x >= width or e.y >= height:
+            continue
+        if e.t - last[e.y, e.x] >= period_us:
+            last[e.y, e.x] = e.t
+            out[n] = e
+            n += 1
+    return n
 
 
 def _inside(events: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -73,9 +85,9 @@ class BackgroundActivity:
             shift = last - self._base - (self.REBASE_US >> 1)
             self._support = np.maximum(self._support.astype(np.int64) - shift, self._never).astype(np.int32)
             self._base += shift
-        keep = np.empty(len(events), np.bool_)
-        _ba_kernel(events, self._support, keep, self.window_us, self.width, self.height, self._base)
-        return events[keep]
+        out = np.empty(len(events), EVENT_DTYPE)
+        n = _ba_kernel(events, self._support, out, self.window_us, self.width, self.height, self._base)
+        return out[:n]
 
 
 class Refractory:
@@ -86,10 +98,8 @@ class Refractory:
         self._last = np.full((height, width), np.iinfo(np.int64).min // 2, np.int64)
 
     def __call__(self, events: np.ndarray) -> np.ndarray:
-        events = _inside(events, self.width, self.height)
-        keep = np.empty(len(events), np.bool_)
-        _refractory_kernel(events["t"], events["x"], events["y"], self._last, keep, self.period_us)
-        return events[keep]
+        out = np.empty(len(events), EVENT_DTYPE)
+        return out[:_refractory_kernel(events, self._last, out, self.period_us, self.width, self.height)]
 
 
 class Mask:
