@@ -7,6 +7,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -63,7 +64,7 @@ def _cmd_camera(args: argparse.Namespace) -> int:
     from services.camera.simulator import SimParams
 
     source = open_source(args.source, seed=args.seed, loop=args.loop, sim_params=SimParams.parse(args.sim_param or []))
-    calib = getattr(getattr(source, "recording", None), "calibration", None)
+    calib = source.calibration
     chain = parse_chain(args.filter or [], source.width, source.height, source.K,
                         calib.dist_model if calib else "none", calib.dist if calib else None)
     opts = _service_options(args, "cam0")
@@ -112,8 +113,6 @@ def _cmd_router(args: argparse.Namespace) -> int:
     default_listen = [] if args.zenoh_config else ["tcp/0.0.0.0:7447"]
     settings = config.resolve("router", None, args.listen or default_listen, None, args.zenoh_config)
     stop = threading.Event()
-    import signal
-
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with zenoh.open(settings.zenoh_config()):

@@ -85,7 +85,7 @@ class CameraService(Service):
     def _fast_until(self, sensor_us: int) -> int:
         """The next step when playing as fast as possible: to the end of what the file reader has
         loaded (views, no copies), or FAST_STEP_US of sensor time."""
-        loaded = getattr(self.source, "loaded_until_us", lambda: None)()
+        loaded = self.source.loaded_until_us()
         return max(loaded, sensor_us + 1) if loaded is not None else sensor_us + FAST_STEP_US
 
     def _play(self, since_us: int, until_us: int) -> None:
@@ -99,7 +99,7 @@ class CameraService(Service):
             self._truth.publish(Tracks.from_boxes(t_us, ids, boxes, **extra))
         for t_us, p, q, omega in self.source.poses(since_us, until_us):
             self._pose.publish(Pose(stamp=t_us, t=t_us, p=p, q=q, omega=omega, child=self.name))
-        for t_us, depth in getattr(self.source, "depths", lambda *_: [])(since_us, until_us):
+        for t_us, depth in self.source.depths(since_us, until_us):
             self._depth.publish(image_from_array(t_us, depth, "rawf32"))
         imu = self.source.imu(since_us, until_us)
         if imu is not None:
@@ -107,8 +107,7 @@ class CameraService(Service):
             self._imu.publish(ImuPacket(stamp=int(t[-1]), t=t, gyro=gyro, accel=accel))
 
     def _report_end(self) -> None:
-        error = getattr(self.source, "error", None)
-        if error is not None:
-            log.error("stopped playing: %s (every event before it was published)", error)
+        if self.source.error is not None:
+            log.error("stopped playing: %s (every event before it was published)", self.source.error)
         else:
             log.info("end of %s: %d events published", self.source.name, self._events.counter.events)

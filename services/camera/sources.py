@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from services.camera.formats import FormatError, Recording, open_recording
+from services.camera.formats import Calibration, FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.camera.rotation_scene import RotationScene
 from services.camera.simulator import EventSimulator, ObjectsScene, SimParams
@@ -35,8 +35,10 @@ class EventSource(Protocol):
     width: int
     height: int
     K: np.ndarray
+    calibration: Calibration | None  # with distortion, for undistortion filters
     start_us: int
     done: bool
+    error: FormatError | None  # a fault met in a file, after the good events before it
 
     def advance(self, until_us: int) -> np.ndarray: ...
 
@@ -45,6 +47,10 @@ class EventSource(Protocol):
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None: ...
 
     def poses(self, since_us: int, until_us: int) -> list[TruthPose]: ...
+
+    def depths(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray]]: ...
+
+    def loaded_until_us(self) -> int | None: ...
 
 
 ImuSamples = tuple[np.ndarray, np.ndarray, np.ndarray]  # t_us, gyro rad/s (Nx3), accel m/s^2 (Nx3)
@@ -60,6 +66,8 @@ class SimSource:
 
     done = False
     start_us = 0
+    calibration = None  # ideal pinhole: K only
+    error = None
 
     def __init__(self, scene: ObjectsScene | RotationScene | SixDofScene, sim: EventSimulator, name: str) -> None:
         self.scene, self.sim, self.name = scene, sim, name
@@ -71,7 +79,10 @@ class SimSource:
         return self.sim.advance(until_us)
 
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
-        return None  # the objects scene's camera is static and has no IMU
+        return None  # the simulated cameras have no IMU yet
+
+    def loaded_until_us(self) -> int | None:
+        return None  # simulated events are made on demand: nothing is loaded ahead
 
     def _truth_times(self, since_us: int, until_us: int) -> range:
         return range((since_us // TRUTH_PERIOD_US + 1) * TRUTH_PERIOD_US, until_us + 1, TRUTH_PERIOD_US)
@@ -102,6 +113,7 @@ class FileSource:
         self.name = str(recording.path)
         self.width, self.height = recording.width, recording.height
         self.K = recording.K_or_default()
+        self.calibration = recording.calibration
         self._chunks = recording.chunks()
         self._pending = np.empty(0, EVENT_DTYPE)
         self._shift_us = 0
@@ -169,6 +181,9 @@ class FileSource:
         t = np.round(rows[:, 0] * 1e6).astype(np.int64) + self._shift_us
         sel = (t > since_us) & (t <= until_us)
         return [(int(ti), r[1:4], r[4:8], None) for ti, r in zip(t[sel], rows[sel], strict=True)]
+
+    def depths(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray]]:
+        return []  # a file's depth maps are not re-published yet
 
     def loaded_until_us(self) -> int | None:
         """Time of the last event already read from the file: advancing to it costs no copy."""
