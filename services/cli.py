@@ -21,6 +21,8 @@ from services.camera.sources import SourceError
 log = logging.getLogger("etam")
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+SOURCE_HELP = ("event source: sim:objects (default), sim:rotation, sim:6dof, sim:stereo (two cameras), "
+               "or a recording's path")
 SIM_PARAM_HELP = ("a simulator parameter (repeatable): contrast, contrast_sigma, refractory_us, noise_rate_hz, "
                   "hot_pixel_fraction, hot_pixel_rate_hz, max_step_px, min_dt_us, max_dt_us")
 
@@ -55,7 +57,7 @@ def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - Ser
 
 def _cmd_camera(args: argparse.Namespace) -> int:
     from services.camera.service import CameraService
-    from services.camera.sources import open_source
+    from services.camera.sources import open_sources
 
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
@@ -63,13 +65,14 @@ def _cmd_camera(args: argparse.Namespace) -> int:
 
     from services.camera.simulator import SimParams
 
-    source = open_source(args.source, seed=args.seed, loop=args.loop, sim_params=SimParams.parse(args.sim_param or []))
-    calib = source.calibration
-    chain = parse_chain(args.filter or [], source.width, source.height, source.K,
-                        calib.dist_model if calib else "none", calib.dist if calib else None)
+    params = SimParams.parse(args.sim_param or [])
+    sources = open_sources(args.source, seed=args.seed, loop=args.loop, sim_params=params)
+    chains = [parse_chain(args.filter or [], src.width, src.height, src.K,
+                          src.calibration.dist_model if src.calibration else "none",
+                          src.calibration.dist if src.calibration else None) for src in sources]
     opts = _service_options(args, "cam0")
-    return CameraService(opts, source, slice_us=args.slice_us, max_events=args.max_events, rate=args.rate,
-                         filters=chain).run()
+    return CameraService(opts, sources, slice_us=args.slice_us, max_events=args.max_events, rate=args.rate,
+                         filters=chains).run()
 
 
 def _cmd_tracker(args: argparse.Namespace) -> int:
@@ -96,13 +99,13 @@ def _cmd_up(args: argparse.Namespace) -> int:
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f))),
     )
-    from services.camera.sources import open_source
+    from services.camera.sources import open_sources
 
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     from services.camera.filters import parse_chain
 
-    source = open_source(args.source)  # a bad source or filter fails here, before anything starts
+    source = open_sources(args.source)[0]  # a bad source or filter fails here, before anything starts
     parse_chain([f for f in args.filter or [] if f != "undistort"], source.width, source.height)
     return up(opts)
 
@@ -224,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("up", help="run the whole rig (router, camera, tracker, dashboard)")
-    p.add_argument("--source", default="sim:objects", help="event source: sim:objects (default) or a recording")
+    p.add_argument("--source", default="sim:objects", help=SOURCE_HELP)
     p.add_argument("--rate", type=float, default=1.0, help="playback speed of a recording (0: as fast as possible)")
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
     p.add_argument("--filter", action="append", metavar="NAME[:ARGS]", help="camera filter chain (see etam camera)")
@@ -246,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("camera", help="run the camera service alone")
     _zenoh_flags(p)
     p.add_argument("--name", help="camera name in keys (default cam0)")
-    p.add_argument("--source", default="sim:objects", help="sim:objects (default) or a recording's path")
+    p.add_argument("--source", default="sim:objects", help=SOURCE_HELP)
     p.add_argument("--rate", type=float, default=1.0,
                    help="playback speed of a recording: 1 real time (default), 2 twice as fast, 0 as fast as possible")
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
@@ -293,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hz)
 
     p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth")
-    p.add_argument("scene", choices=("objects", "rotation", "6dof"), help="scene to simulate")
+    p.add_argument("scene", choices=("objects", "rotation", "6dof", "stereo"), help="scene to simulate")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

@@ -8,7 +8,7 @@ import pytest
 from services import config, keys
 from services.camera.packetizer import Packetizer
 from services.camera.simulator import EventSimulator, ObjectsScene
-from services.camera.sources import SourceError, open_source
+from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
 from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, iou
@@ -139,9 +139,9 @@ def test_keys_and_config(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_unknown_sources_are_named() -> None:
     with pytest.raises(SourceError, match="sim:nowhere"):
-        open_source("sim:nowhere")
+        open_sources("sim:nowhere")
     with pytest.raises(SourceError, match="recording.aedat4"):
-        open_source("recording.aedat4")
+        open_sources("recording.aedat4")
 
 
 def test_dashboard_table_lists_services_keys_and_losses() -> None:

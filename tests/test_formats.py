@@ -12,7 +12,7 @@ import pytest
 
 from services.camera.formats import Calibration, FormatError, open_recording
 from services.camera.formats.hdf5 import H5Writer
-from services.camera.sources import FileSource, SourceError, open_source
+from services.camera.sources import FileSource, SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from tests.conftest import SHARED, etam_argv
 
@@ -162,7 +162,7 @@ def test_unreadable_files_are_named(tmp_path: Path, content: bytes, message: str
     with pytest.raises(FormatError, match=rf"bad.bin: .*{message}"):
         open_recording(path)
     with pytest.raises(SourceError, match="bad.bin"):
-        open_source(str(path))
+        open_sources(str(path))
 
 
 def test_file_source_plays_loops_and_publishes_truth(tmp_path: Path) -> None:
@@ -371,3 +371,75 @@ def test_sim_6dof_writes_events_poses_and_depth_maps(tmp_path: Path) -> None:
     assert np.linalg.norm(poses[-1, 1:4]) > 0.01  # the camera moves
     at_rest = SixDofScene().depth(0)  # at t = 0 the camera is the world frame: the back wall is at z = 5
     assert np.isclose(at_rest.max(), 5.0, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def stereo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("stereo") / "st.h5"
+    run = subprocess.run(etam_argv("sim", "stereo", "--out", str(out), "--duration", "0.2", "--json"),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["cameras"] == 2
+    return out
+
+
+def test_sim_stereo_is_two_cameras_on_a_known_baseline_seeing_the_same_scene(stereo_file: Path) -> None:
+    from scipy.spatial.transform import Rotation
+
+    from services.camera.sources import STEREO_BASELINE_M
+
+    left, right = open_recording(stereo_file).rig()
+    assert (left.cameras, right.width, right.height) == (["cam0", "cam1"], 346, 260)
+    assert np.allclose(right.calibration.T_body_cam[:3, 3], [STEREO_BASELINE_M, 0, 0])
+    ev_l, ev_r = left.read_all(), right.read_all()
+    assert len(ev_l) > 10_000 and len(ev_r) > 10_000 and ev_l.tobytes() != ev_r.tobytes()
+    # the right camera's pose is the left's moved by the baseline along the left camera's x axis
+    pl, pr = left.truth.poses, right.truth.poses
+    assert np.allclose(pl[:, 0], pr[:, 0]) and np.allclose(pl[:, 4:], pr[:, 4:])
+    offset = Rotation.from_quat(pl[:, 4:]).apply([STEREO_BASELINE_M, 0, 0])
+    assert np.allclose(pr[:, 1:4] - pl[:, 1:4], offset, atol=1e-9)
+    # a left depth map, moved into the right camera, agrees with the right depth map where both see it
+    K = left.calibration.K
+    zl, zr = left.truth.depth_maps[-1], right.truth.depth_maps[-1]
+    ys, xs = np.mgrid[0:260, 0:346]
+    pts = np.stack([(xs - K[0, 2]) / K[0, 0] * zl, (ys - K[1, 2]) / K[1, 1] * zl, zl], -1).reshape(-1, 3)
+    pts[:, 0] -= STEREO_BASELINE_M  # same orientation: the right camera frame is shifted along x
+    u = np.round(K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2]).astype(int)
+    v = np.round(K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]).astype(int)
+    inside = (u >= 0) & (u < 346) & (v >= 0) & (v < 260)
+    err = np.abs(zr[v[inside], u[inside]] - pts[inside, 2]) / pts[inside, 2]
+    assert inside.mean() > 0.8 and np.median(err) < 0.01 and (err < 0.05).mean() > 0.9  # occlusion edges differ
+
+
+def test_a_stereo_file_plays_both_cameras_with_calibration_and_depth(stereo_file: Path, router: str,
+                                                                    rig: str) -> None:
+    import zenoh
+
+    from services.config import ZenohSettings
+    from services.messages import CameraInfo, EventPacket, Image, decode, image_to_array
+    from tests.conftest import spawn, wait_for
+
+    cams = open_recording(stereo_file).rig()
+    packets: dict[str, list[EventPacket]] = {"cam0": [], "cam1": []}
+    depth: dict[str, list[Image]] = {"cam0": [], "cam1": []}
+
+    def on(store: dict, kind: type):  # noqa: ANN202 - a zenoh callback
+        return lambda s: store[str(s.key_expr).split("/")[3]].append(decode(s.payload.to_bytes(), kind))
+
+    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+        subs = [s.declare_subscriber(f"etam/{rig}/camera/*/events", on(packets, EventPacket)),
+                s.declare_subscriber(f"etam/{rig}/camera/*/truth/depth", on(depth, Image))]
+        with spawn("camera", "--source", str(stereo_file), "--rate", "0", "--connect", router, "--rig", rig):
+            wait_for(lambda: all(sum(len(p.events) for p in packets[name]) >= cam.n_events
+                                 for name, cam in zip(packets, cams, strict=True)), 60, "every event of both cameras")
+            wait_for(lambda: all(len(d) == 2 for d in depth.values()), 10, "both depth maps of both cameras")
+            info = decode(s.get(f"etam/{rig}/camera/cam1/info").__next__().ok.payload.to_bytes(), CameraInfo)
+        for sub in subs:
+            sub.undeclare()
+    for cam, name in zip(cams, ("cam0", "cam1"), strict=True):
+        got = np.concatenate([p.events for p in packets[name]])
+        assert got.tobytes() == cam.read_all().tobytes()
+        assert [p.seq for p in packets[name]] == list(range(1, len(packets[name]) + 1))
+        assert [d.t for d in depth[name]] == cam.truth.depth_t.tolist()
+        assert np.array_equal(image_to_array(depth[name][-1]), cam.truth.depth_maps[-1], equal_nan=True)
+    assert np.allclose(info.T_body_cam, cams[1].calibration.T_body_cam)

@@ -8,52 +8,63 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from services.camera.formats import Calibration, open_recording
+from services.camera.formats import open_recording
 from services.camera.formats.recording import EventWriter
 from services.camera.formats.hdf5 import H5Writer
 from services.camera.simulator import SimParams
-from services.camera.sources import SimSource, open_source
+from services.camera.sources import SimSource, open_sources
 
 STEP_US = 100_000
 
 
 def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: bool = True,
              params: SimParams | None = None) -> dict[str, Any]:
-    """Simulate `scene` for `duration_s` into an ETAM HDF5 file with its ground truth."""
-    source = open_source(f"sim:{scene}", seed=seed, sim_params=params)
-    assert isinstance(source, SimSource)
+    """Simulate `scene` for `duration_s` into an ETAM HDF5 file with its ground truth (a rig's
+    further cameras in groups `/cam1`, ...)."""
+    sources = open_sources(f"sim:{scene}", seed=seed, sim_params=params)
     end_us = int(duration_s * 1e6)
+    totals = {"events": 0, "truth_boxes": 0, "truth_poses": 0}
+    first = sources[0]
+    with H5Writer(out, first.width, first.height) as writer, \
+            tqdm(total=len(sources) * end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
+        for i, source in enumerate(sources):
+            assert isinstance(source, SimSource)
+            cam_writer = writer if i == 0 else writer.add_camera(f"cam{i}", source.width, source.height)
+            counts = _simulate_camera(source, cam_writer, end_us, bar)
+            totals = {k: totals[k] + counts[k] for k in totals}
+    return {"file": str(out), "scene": scene, "cameras": len(sources), "duration_s": duration_s, "seed": seed,
+            **totals}
+
+
+def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm) -> dict[str, int]:
     boxes, boxes_3d, poses, omega, depth_t, depth_maps = [], [], [], [], [], []
-    with H5Writer(out, source.width, source.height) as writer, \
-            tqdm(total=end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
-        writer.write_calibration(Calibration(source.K))
-        for since in range(0, end_us, STEP_US):
-            until = min(since + STEP_US, end_us)
-            writer.write(source.advance(until))
-            for t_us, ids, bxs, solid in source.truth(since, until):
-                boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
-                boxes_3d.extend(solid.tolist())
-            for t_us, p, q, w in source.poses(since, until):
-                poses.append([t_us / 1e6, *p, *q])
-                omega.append([t_us / 1e6, *w])
-            for t_us, depth in source.depths(since, until):
-                depth_t.append(t_us)
-                depth_maps.append(depth)
-            bar.update((until - since) // 1000)
-        if boxes:
-            writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
-            writer.write_truth("boxes_3d", np.asarray(boxes_3d, np.float64).reshape(-1, 4))
-        if poses:
-            writer.write_truth("poses", np.asarray(poses, np.float64))
-            writer.write_truth("omega", np.asarray(omega, np.float64))
-        if depth_maps:
-            writer.write_truth("depth/t", np.asarray(depth_t, np.int64))
-            writer.write_truth("depth/maps", np.stack(depth_maps).astype(np.float32))
-        if hasattr(source.scene, "panorama"):
-            writer.write_truth("panorama", source.scene.panorama)
-        count = writer.count
-    return {"file": str(out), "scene": scene, "events": count, "duration_s": duration_s, "seed": seed,
-            "truth_boxes": len(boxes), "truth_poses": len(poses)}
+    if source.calibration is not None:
+        writer.write_calibration(source.calibration)
+    for since in range(0, end_us, STEP_US):
+        until = min(since + STEP_US, end_us)
+        writer.write(source.advance(until))
+        for t_us, ids, bxs, solid in source.truth(since, until):
+            boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
+            boxes_3d.extend(solid.tolist())
+        for t_us, p, q, w in source.poses(since, until):
+            poses.append([t_us / 1e6, *p, *q])
+            omega.append([t_us / 1e6, *w])
+        for t_us, depth in source.depths(since, until):
+            depth_t.append(t_us)
+            depth_maps.append(depth)
+        bar.update((until - since) // 1000)
+    if boxes:
+        writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
+        writer.write_truth("boxes_3d", np.asarray(boxes_3d, np.float64).reshape(-1, 4))
+    if poses:
+        writer.write_truth("poses", np.asarray(poses, np.float64))
+        writer.write_truth("omega", np.asarray(omega, np.float64))
+    if depth_maps:
+        writer.write_truth("depth/t", np.asarray(depth_t, np.int64))
+        writer.write_truth("depth/maps", np.stack(depth_maps).astype(np.float32))
+    if hasattr(source.scene, "panorama"):
+        writer.write_truth("panorama", source.scene.panorama)
+    return {"events": writer.count, "truth_boxes": len(boxes), "truth_poses": len(poses)}
 
 
 def describe(path: Path, progress: bool = True) -> dict[str, Any]:
@@ -73,7 +84,7 @@ def describe(path: Path, progress: bool = True) -> dict[str, Any]:
         imu = rec.imu()
         duration = (t1 - t0) / 1e6 if n else 0.0
         return {
-            "file": str(path), "format": rec.format, "width": rec.width, "height": rec.height,
+            "file": str(path), "format": rec.format, "cameras": rec.cameras, "width": rec.width, "height": rec.height,
             "events": n, "t_first_us": t0, "t_last_us": t1, "duration_s": duration,
             "event_rate": n / duration if duration > 0 else None,
             "on_fraction": on / n if n else None,
@@ -86,7 +97,8 @@ def describe(path: Path, progress: bool = True) -> dict[str, Any]:
 def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
     """Copy a recording into ETAM HDF5 (.h5), AEDAT 4.0 (.aedat4) or ECD text (.txt or a folder).
 
-    Calibration and ground truth go along where the output format has a place for them."""
+    Calibration and ground truth go along where the output format has a place for them; of a rig of
+    several cameras, the first is copied."""
     from services.camera.formats.aedat4 import Aedat4Writer
     from services.camera.formats.ecd import EcdWriter
 
@@ -96,8 +108,7 @@ def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
             writer: EventWriter = H5Writer(dst, rec.width, rec.height)
             if rec.calibration is not None:
                 writer.write_calibration(rec.calibration)
-            for name in rec.truth.present():
-                writer.write_truth(name, getattr(rec.truth, name))
+            writer.copy_truth(rec.truth)
         elif suffix == ".aedat4":
             writer = Aedat4Writer(dst, rec.width, rec.height, source=rec.path.name)
         elif suffix in (".txt", ""):

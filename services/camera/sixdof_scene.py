@@ -4,7 +4,8 @@ A room of textured planes (back wall at 5 m, floor, side walls) with textured bo
 pixel's ray is intersected with every surface (vectorised over pixels), the nearest hit gives the
 intensity (from a texture in metric surface coordinates) and the depth. The camera's position and
 orientation are smooth periodic functions of time, so poses and depth maps are exact ground truth.
-The world frame is the camera's frame at t = 0 (x right, y down, z forward).
+The world frame is the (left) camera's frame at t = 0 (x right, y down, z forward). A stereo rig is two
+scenes with the same seed, the second with `baseline_m`: it sits that far along the first camera's x axis.
 """
 
 from __future__ import annotations
@@ -21,8 +22,11 @@ TEXTURE_PX_PER_M = 200.0
 class SixDofScene:
     """Renders log intensity and depth for the camera pose at any time; see the module docstring."""
 
-    def __init__(self, width: int = 346, height: int = 260, seed: int = 0, period_s: float = 10.0) -> None:
+    def __init__(self, width: int = 346, height: int = 260, seed: int = 0, period_s: float = 10.0,
+                 baseline_m: float = 0.0) -> None:
         self.width, self.height = width, height
+        self.T_body_cam = np.eye(4)
+        self.T_body_cam[0, 3] = baseline_m  # body = the left camera
         rng = np.random.default_rng(seed)
         self.focal_px = 0.9 * width
         self.period_us = int(period_s * 1e6)
@@ -52,9 +56,13 @@ class SixDofScene:
     def rotation(self, t_us: float) -> Rotation:
         return Rotation.from_euler("YXZ", self._motion(t_us)[1])
 
+    def position(self, t_us: float) -> np.ndarray:
+        """This camera's centre in the world (m): the body's plus its rotated offset."""
+        return self._motion(t_us)[0] + self.rotation(t_us).apply(self.T_body_cam[:3, 3])
+
     def pose(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
         """Position (m) and quaternion x y z w of T_world_cam."""
-        return self._motion(t_us)[0], self.rotation(t_us).as_quat()
+        return self.position(t_us), self.rotation(t_us).as_quat()
 
     def omega(self, t_us: float) -> np.ndarray:
         h = 50.0
@@ -62,12 +70,12 @@ class SixDofScene:
 
     def max_speed_px_s(self, t_us: float) -> float:
         h = 500.0
-        v = np.linalg.norm(self._motion(t_us + h)[0] - self._motion(t_us - h)[0]) / (2 * h * 1e-6)
+        v = np.linalg.norm(self.position(t_us + h) - self.position(t_us - h)) / (2 * h * 1e-6)
         return float(np.linalg.norm(self.omega(t_us)) * self._reach_px + v / 0.5 * self.focal_px)
 
     def _hits(self, t_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per pixel: ray length to the nearest surface, and that point's two texture coordinates (m)."""
-        o, _ = self._motion(t_us)
+        o = self.position(t_us)
         d = (self._rays @ self.rotation(t_us).as_matrix().T).astype(np.float32)
         inv = 1.0 / np.where(d == 0, np.float32(1e-9), d)
         best = np.full(len(d), np.inf, np.float32)

@@ -36,6 +36,7 @@ class EventSource(Protocol):
     height: int
     K: np.ndarray
     calibration: Calibration | None  # with distortion, for undistortion filters
+    T_body_cam: np.ndarray | None  # where the camera sits in a rig of several, else None
     start_us: int
     done: bool
     error: FormatError | None  # a fault met in a file, after the good events before it
@@ -61,12 +62,11 @@ TruthPose = tuple[int, np.ndarray, np.ndarray, np.ndarray | None]  # t_us, p (m)
 
 class SimSource:
     """A simulator scene: `sim:objects` (static camera, moving objects, truth boxes), `sim:rotation`
-    (spinning camera, truth poses and angular velocity) or `sim:6dof` (moving camera, 3D structure,
-    truth poses and depth maps)."""
+    (spinning camera, truth poses and angular velocity), `sim:6dof` (moving camera, 3D structure,
+    truth poses and depth maps), or one camera of `sim:stereo`."""
 
     done = False
     start_us = 0
-    calibration = None  # ideal pinhole: K only
     error = None
 
     def __init__(self, scene: ObjectsScene | RotationScene | SixDofScene, sim: EventSimulator, name: str) -> None:
@@ -74,6 +74,8 @@ class SimSource:
         self.width, self.height = scene.width, scene.height
         f = scene.focal_px
         self.K = np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
+        self.T_body_cam = getattr(scene, "T_body_cam", None)
+        self.calibration = Calibration(self.K, T_body_cam=self.T_body_cam)  # an ideal pinhole
 
     def advance(self, until_us: int) -> np.ndarray:
         return self.sim.advance(until_us)
@@ -114,6 +116,7 @@ class FileSource:
         self.width, self.height = recording.width, recording.height
         self.K = recording.K_or_default()
         self.calibration = recording.calibration
+        self.T_body_cam = recording.calibration.T_body_cam if recording.calibration else None
         self._chunks = recording.chunks()
         self._pending = np.empty(0, EVENT_DTYPE)
         self._shift_us = 0
@@ -183,7 +186,12 @@ class FileSource:
         return [(int(ti), r[1:4], r[4:8], None) for ti, r in zip(t[sel], rows[sel], strict=True)]
 
     def depths(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray]]:
-        return []  # a file's depth maps are not re-published yet
+        truth = self.recording.truth
+        if truth.depth_t is None or truth.depth_maps is None:
+            return []
+        t = truth.depth_t + self._shift_us
+        return [(int(t[i]), np.asarray(truth.depth_maps[i], np.float32))
+                for i in np.flatnonzero((t > since_us) & (t <= until_us))]
 
     def loaded_until_us(self) -> int | None:
         """Time of the last event already read from the file: advancing to it costs no copy."""
@@ -204,27 +212,31 @@ class FileSource:
         return out
 
 
-SIM_SCENES = ("objects", "rotation", "6dof")
+SIM_SCENES = ("objects", "rotation", "6dof", "stereo")
+STEREO_BASELINE_M = 0.1  # the simulated stereo rig's baseline, along the left camera's x axis
 
 
-def open_source(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None) -> EventSource:
-    """Open a source from its command-line name: ``sim:objects``, or the path of a recording."""
+def open_sources(spec: str, seed: int = 0, loop: bool = False,
+                 sim_params: SimParams | None = None) -> list[EventSource]:
+    """Open the cameras of a source from its command-line name (``sim:objects``, ``sim:stereo``, the
+    path of a recording): one source, or one per camera of a rig, the first first."""
     if spec.startswith("sim:"):
         scene = spec[4:]
-        if scene == "objects":
-            sc = ObjectsScene(seed=seed)
-            return SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)
-        if scene in ("rotation", "6dof"):
-            sc3 = RotationScene(seed=seed) if scene == "rotation" else SixDofScene(seed=seed)
-            return SimSource(sc3, EventSimulator(sc3, sim_params, seed=seed), spec)
-        raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
-                          f"{', '.join('sim:' + s for s in SIM_SCENES)})")
+        if scene == "stereo":
+            rig = [SixDofScene(seed=seed, baseline_m=b) for b in (0.0, STEREO_BASELINE_M)]
+            return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed + i), spec) for i, sc in enumerate(rig)]
+        scenes = {"objects": ObjectsScene, "rotation": RotationScene, "6dof": SixDofScene}
+        if scene not in scenes:
+            raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
+                              f"{', '.join('sim:' + s for s in SIM_SCENES)})")
+        sc = scenes[scene](seed=seed)
+        return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)]
     if spec == "usb" or spec.startswith("usb:"):
         raise SourceError(f"source {spec!r}: USB cameras are not supported yet")
     if not Path(spec).exists():
         raise SourceError(f"source {spec!r}: no such file, and not a known source "
                           f"({', '.join('sim:' + s for s in SIM_SCENES)}, or a recording's path)")
     try:
-        return FileSource(open_recording(spec), loop=loop)
+        return [FileSource(rec, loop=loop) for rec in open_recording(spec).rig()]
     except FormatError as exc:
         raise SourceError(f"source {spec!r}: {exc}") from None

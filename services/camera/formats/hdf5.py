@@ -1,6 +1,9 @@
 """ETAM HDF5 (DESIGN.md section 7), read and written, and DSEC-style HDF5, read.
 
 ETAM: `/events/{t,x,y,p}`, root attributes width/height, optional `/calibration` and `/truth`.
+A rig of several cameras keeps the first at the root (so every reader sees a plain file) and each
+further one in a group of the same layout named after it (`/cam1/events/t`, `/cam1/calibration/K`,
+...), with `calibration/T_body_cam` (4x4) placing each camera in the rig.
 DSEC: `events/{x,y,t,p}` with `t_offset` (us) added to t; sensor size 640x480 unless attributes say.
 """
 
@@ -13,11 +16,12 @@ import h5py
 import numpy as np
 
 from services.camera.formats.recording import (
-    CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, events_from_columns,
+    CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, Truth, events_from_columns,
 )
 
 MAGIC = b"\x89HDF\r\n\x1a\n"
 DSEC_SIZE = (640, 480)
+ROOT_CAMERA = "cam0"  # the name of the camera stored at the file's root
 
 
 class H5Recording(Recording):
@@ -25,13 +29,17 @@ class H5Recording(Recording):
 
     format = "hdf5"
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, camera: str | None = None) -> None:
         super().__init__(path)
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
             raise FormatError(self.path, f"not a readable HDF5 file ({exc})") from None
-        f = self._file
+        self.cameras = [ROOT_CAMERA] + sorted(g for g, item in self._file.items()
+                                              if isinstance(item, h5py.Group) and "events" in item)
+        if camera not in (None, ROOT_CAMERA) and camera not in self.cameras:
+            raise FormatError(self.path, f"no camera {camera!r} (cameras: {', '.join(self.cameras)})")
+        f = self._file if camera in (None, ROOT_CAMERA) else self._file[camera]
         if "events" not in f or not all(k in f["events"] for k in "txyp"):
             raise FormatError(self.path, "no events/{t,x,y,p} datasets")
         self._t_offset = int(f["t_offset"][()]) if "t_offset" in f else 0
@@ -51,13 +59,21 @@ class H5Recording(Recording):
                 np.asarray(f["calibration/K"][:], np.float64),
                 str(dist.attrs.get("model", "radtan")) if dist is not None else "none",
                 np.asarray(dist[:], np.float64) if dist is not None else np.zeros(0),
+                np.asarray(f["calibration/T_body_cam"][:], np.float64) if "calibration/T_body_cam" in f else None,
             )
         for name in ("poses", "boxes", "boxes_3d", "omega"):
             if f"truth/{name}" in f:
                 setattr(self.truth, name, np.asarray(f[f"truth/{name}"][:]))
+        if "truth/depth/t" in f and "truth/depth/maps" in f:
+            self.truth.depth_t = np.asarray(f["truth/depth/t"][:], np.int64)
+            self.truth.depth_maps = f["truth/depth/maps"]  # frames are read when played
+        self._events = f["events"]
+
+    def rig(self) -> list[Recording]:
+        return [self] + [H5Recording(self.path, name) for name in self.cameras[1:]]
 
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
-        ev = self._file["events"]
+        ev = self._events
         for start in range(0, self.n_events, max_events):
             stop = min(start + max_events, self.n_events)
             t = ev["t"][start:stop].astype(np.int64) + self._t_offset
@@ -68,11 +84,13 @@ class H5Recording(Recording):
 
 
 class H5Writer(EventWriter):
-    """Appends events (and at the end calibration and truth) to an ETAM HDF5 file."""
+    """Appends events (and at the end calibration and truth) to an ETAM HDF5 file; `add_camera`
+    gives a writer for a further camera of a rig in the same file."""
 
-    def __init__(self, path: str | Path, width: int, height: int) -> None:
+    def __init__(self, path: str | Path, width: int, height: int, _group: h5py.Group | None = None) -> None:
         self.path = Path(path)
-        self._file = h5py.File(self.path, "w")
+        self._owner = _group is None
+        self._file = h5py.File(self.path, "w") if _group is None else _group
         self._file.attrs["width"], self._file.attrs["height"] = width, height
         grp = self._file.create_group("events")
         self._cols = {
@@ -90,13 +108,29 @@ class H5Writer(EventWriter):
             ds[self.count:] = events[name]
         self.count += n
 
+    def add_camera(self, name: str, width: int, height: int) -> H5Writer:
+        """A writer for camera `name` of the same rig, stored in group `/name`."""
+        return H5Writer(self.path, width, height, _group=self._file.create_group(name))
+
     def write_calibration(self, calib: Calibration) -> None:
         self._file["calibration/K"] = np.asarray(calib.K, np.float64)
         self._file["calibration/dist"] = np.asarray(calib.dist, np.float64)
         self._file["calibration/dist"].attrs["model"] = calib.dist_model
+        if calib.T_body_cam is not None:
+            self._file["calibration/T_body_cam"] = np.asarray(calib.T_body_cam, np.float64)
 
     def write_truth(self, name: str, rows: np.ndarray) -> None:
         self._file[f"truth/{name}"] = rows
 
+    def copy_truth(self, truth: Truth) -> None:
+        """Every ground truth `truth` holds, as read from another file."""
+        for name in ("poses", "boxes", "boxes_3d", "omega"):
+            if getattr(truth, name) is not None:
+                self.write_truth(name, getattr(truth, name))
+        if truth.depth_t is not None and truth.depth_maps is not None:
+            self.write_truth("depth/t", truth.depth_t)
+            self.write_truth("depth/maps", np.asarray(truth.depth_maps[:], np.float32))
+
     def close(self) -> None:
-        self._file.close()
+        if self._owner:
+            self._file.close()

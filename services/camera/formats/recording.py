@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -26,11 +26,13 @@ class FormatError(ValueError):
 
 @dataclass
 class Calibration:
-    """Pinhole intrinsics and distortion (`radtan`: k1 k2 p1 p2 k3; `equidistant`; `none`)."""
+    """Pinhole intrinsics and distortion (`radtan`: k1 k2 p1 p2 k3; `equidistant`; `none`), and for
+    rigs of several cameras this camera's pose in the rig's body frame (4x4)."""
 
     K: np.ndarray
     dist_model: str = "none"
     dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    T_body_cam: np.ndarray | None = None
 
 
 @dataclass
@@ -41,9 +43,12 @@ class Truth:
     boxes: np.ndarray | None = None  # M x 6 (t_us, id, x, y, w, h)
     boxes_3d: np.ndarray | None = None  # M x 4 beside `boxes`: object centre x y z (m, camera frame), width (m)
     omega: np.ndarray | None = None  # N x 4 (t_s, wx wy wz rad/s)
+    depth_t: np.ndarray | None = None  # N frame times (us) of ...
+    depth_maps: Sequence[np.ndarray] | None = None  # ... N x H x W metric depth (float32, NaN unknown), read on demand
 
     def present(self) -> list[str]:
-        return [name for name in ("poses", "boxes", "boxes_3d", "omega") if getattr(self, name) is not None]
+        names = [name for name in ("poses", "boxes", "boxes_3d", "omega") if getattr(self, name) is not None]
+        return names + (["depth"] if self.depth_t is not None else [])
 
 
 class Recording(ABC):
@@ -57,6 +62,7 @@ class Recording(ABC):
         self.height = 0
         self.calibration: Calibration | None = None
         self.truth = Truth()
+        self.cameras = ["cam0"]  # names of the cameras in the file (several for a stereo rig)
 
     @abstractmethod
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
@@ -75,6 +81,10 @@ class Recording(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def rig(self) -> list[Recording]:
+        """Every camera the file holds, this one first (files of one camera: just this one)."""
+        return [self]
 
     def read_all(self) -> np.ndarray:
         """Every event at once (for small files and tests)."""
