@@ -25,7 +25,7 @@ import zenoh
 
 from services import keys
 from services.config import ZenohSettings, zenoh_reason
-from services.messages import Command, MessageError, Reply, Stats, decode
+from services.messages import Command, MessageError, Reply, Stats, decode, peek
 
 log = logging.getLogger(__name__)
 
@@ -114,31 +114,6 @@ class Child:
             self.proc.wait()
 
 
-COUNTED = ("events", "id", "points")  # the array whose length a message's Stats count
-
-
-def _header(payload: bytes) -> dict[str, Any]:
-    """`type`, `seq` and the length (`count`) of a message's counted array, without unpacking (or
-    copying) any array data: the launcher sees every message of the rig."""
-    unpacker = msgpack.Unpacker(raw=False)
-    unpacker.feed(payload)
-    out: dict[str, Any] = {}
-    for _ in range(unpacker.read_map_header()):
-        key = unpacker.unpack()
-        if key in ("type", "seq"):
-            out[key] = unpacker.unpack()
-        elif key in COUNTED and "count" not in out:
-            for _ in range(unpacker.read_map_header()):
-                if unpacker.unpack() == "shape":
-                    shape = unpacker.unpack()
-                    out["count"] = shape[0] if shape else 0
-                else:
-                    unpacker.skip()
-        else:
-            unpacker.skip()
-    return out
-
-
 class TrafficMonitor:
     """Counts every message of the rig per key (messages, events, seq gaps, per-second counts),
     and keeps the latest Stats of each service, from zenoh's callback thread."""
@@ -155,7 +130,7 @@ class TrafficMonitor:
         key = str(sample.key_expr)
         payload = sample.payload.to_bytes()
         try:
-            body = _header(payload)
+            body = peek(payload)
             seq = int(body.get("seq", 0))
             count = int(body.get("count", 0))
             stats = decode(payload, Stats) if body.get("type") == "Stats" else None

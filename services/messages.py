@@ -427,6 +427,33 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     return msg
 
 
+COUNTED = ("events", "id", "points")  # the array whose length is a message's count in Stats
+_PEEKED = ("type", "seq", "sent")
+
+
+def peek(payload: bytes) -> dict[str, Any]:
+    """`type`, `seq`, `sent` and the length (`count`) of a message's counted array, without unpacking
+    (or copying) any array data: for those that see every message (launcher, recorder). Raises
+    msgpack or ValueError exceptions on garbage."""
+    unpacker = msgpack.Unpacker(raw=False)
+    unpacker.feed(payload)
+    out: dict[str, Any] = {}
+    for _ in range(unpacker.read_map_header()):
+        key = unpacker.unpack()
+        if key in _PEEKED:
+            out[key] = unpacker.unpack()
+        elif key in COUNTED and "count" not in out:
+            for _ in range(unpacker.read_map_header()):
+                if unpacker.unpack() == "shape":
+                    shape = unpacker.unpack()
+                    out["count"] = shape[0] if shape else 0
+                else:
+                    unpacker.skip()
+        else:
+            unpacker.skip()
+    return out
+
+
 def image_from_array(t_us: int, img: np.ndarray, encoding: str = "jpeg", quality: int = 80) -> Image:
     """Compress an 8-bit image (HxW or HxWx3 BGR) into an Image message."""
     import cv2

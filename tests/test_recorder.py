@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from services.camera.recorder import read_mcap
@@ -65,6 +66,8 @@ def test_a_file_cut_anywhere_replays_what_is_complete(tmp_path: Path) -> None:
     rec = McapRecorder(path)
     for i in range(3000):
         rec.write(f"etam/r/x/y/t{i % 3}", bytes([i % 251]) * 200, 1_000 + i)
+        if i % 500 == 499:
+            rec.flush()  # what the recorder does every half second: a chunk ends
     rec.close()
     data = path.read_bytes()
     assert len(list(read_mcap(path))) == 3000
@@ -73,3 +76,27 @@ def test_a_file_cut_anywhere_replays_what_is_complete(tmp_path: Path) -> None:
         (tmp_path / "cut.mcap").write_bytes(data[:cut])
         counts.append(len(list(read_mcap(tmp_path / "cut.mcap"))))
     assert counts == sorted(counts) and counts[0] == 0 and 0 < counts[2] < 3000 and counts[-1] >= counts[3]
+
+
+def test_mcap_files_have_a_summary_that_seeking_readers_use(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    from services.camera.recorder import McapRecorder
+    from services.messages import EVENT_DTYPE, EventPacket
+
+    path = tmp_path / "s.mcap"
+    rec = McapRecorder(path)
+    packet = EventPacket(seq=1, stamp=5, width=4, height=4, events=np.zeros(3, EVENT_DTYPE))
+    rec.write("etam/r/camera/cam0/events", packet.encode(), 2_000)
+    for i in range(400):  # incompressible payloads: several 1 MiB chunks
+        rec.write(f"etam/r/x/y/t{i % 2}", np.random.default_rng(i).bytes(10_000), 3_000 + i)
+    rec.close()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == 401
+        assert len(summary.chunk_indexes) >= 4 and len(summary.channels) == 3
+        assert {s.name for s in summary.schemas.values()} == {"EventPacket", "unknown"}
+        got = [(c.topic, m.log_time, m.data) for _, c, m in reader.iter_messages(starting_at=3_100)]
+    assert [t for _, t, _ in got] == list(range(3_100, 3_400))
+    assert got[0][2] == np.random.default_rng(100).bytes(10_000)

@@ -1,9 +1,10 @@
 """`etam record` and `etam replay`: live traffic to MCAP and back, payloads byte for byte.
 
 MCAP layout: one channel per key (message encoding `msgpack`, schema = the ETAM message type),
-`log_time` = receive time (ns), `publish_time` = the message's `sent`. Chunks are LZ4-compressed and
-small (256 KiB), so a crash loses at most the chunk being filled; Ctrl-C and SIGTERM close the file
-with its summary. Replay reads records in order and tolerates a file cut short by a crash.
+`log_time` = receive time (ns), `publish_time` = the message's `sent`. Chunks are zstd-compressed
+(`mcap_writer.py`) and closed every FLUSH_S, so a crash loses at most the last half second; Ctrl-C
+and SIGTERM close the file with its summary. Replay reads records in order and tolerates a file cut
+short by a crash.
 """
 
 from __future__ import annotations
@@ -15,34 +16,24 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import msgpack
 from mcap.exceptions import McapError
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
+from services.camera.mcap_writer import McapWriter
+from services.messages import peek
 from services.runtime import Output, Service, ServiceOptions
 
 log = logging.getLogger(__name__)
 
-CHUNK_BYTES = 256 << 10
 FLUSH_S = 0.5
 
 
-def _message_type(payload: bytes) -> str:
-    """The `type` of a msgpack message, or `unknown` (a recorder stores whatever arrives)."""
+def _header(payload: bytes) -> dict:
+    """The payload's type and send time if it is an ETAM message; a recorder stores garbage too."""
     try:
-        body = msgpack.unpackb(payload, raw=False)
-        return str(body.get("type", "unknown")) if isinstance(body, dict) else "unknown"
-    except Exception:  # noqa: BLE001 - garbage is recorded too, under `unknown`
-        return "unknown"
-
-
-def _sent_ns(payload: bytes, default: int) -> int:
-    try:
-        body = msgpack.unpackb(payload, raw=False)
-        return int(body["sent"]) if isinstance(body, dict) and isinstance(body.get("sent"), int) else default
-    except Exception:  # noqa: BLE001
-        return default
+        return peek(payload)
+    except Exception:  # noqa: BLE001 - whatever msgpack raises on garbage: recorded as `unknown`
+        return {}
 
 
 class McapRecorder:
@@ -50,30 +41,33 @@ class McapRecorder:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self._file = open(path, "wb")
-        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.LZ4)
-        self._writer.start(profile="etam", library="etam")
+        self._writer = McapWriter(path, profile="etam")
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
-        self.messages = 0
+
+    @property
+    def messages(self) -> int:
+        return self._writer.messages
 
     def write(self, key: str, payload: bytes, receive_ns: int) -> None:
+        head = _header(payload)
         channel = self._channels.get(key)
         if channel is None:
-            kind = _message_type(payload)
+            kind = str(head.get("type", "unknown"))
             schema = self._schemas.get(kind)
             if schema is None:
-                schema = self._schemas[kind] = self._writer.register_schema(kind, "", b"")
-            channel = self._channels[key] = self._writer.register_channel(key, "msgpack", schema)
-        self._writer.add_message(channel, receive_ns, payload, _sent_ns(payload, receive_ns), self.messages)
-        self.messages += 1
+                schema = self._schemas[kind] = self._writer.add_schema(kind)
+            channel = self._channels[key] = self._writer.add_channel(key, "msgpack", schema)
+        sent = head.get("sent")
+        publish_ns = sent if isinstance(sent, int) and 0 <= sent < 1 << 64 else receive_ns
+        self._writer.add_message(channel, receive_ns, payload, publish_ns, self.messages)
 
     def flush(self) -> None:
-        self._file.flush()
+        """Put everything received on disk: a crash after this loses nothing before it."""
+        self._writer.flush()
 
     def close(self) -> None:
-        self._writer.finish()
-        self._file.close()
+        self._writer.close()
 
 
 def read_mcap(path: Path) -> Iterator[tuple[str, bytes, int]]:
