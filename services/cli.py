@@ -342,6 +342,7 @@ SERVICE_COMMANDS = ("camera", "tracker", "web")
 
 
 def main(argv: list[str] | None = None) -> int:
+    config.tune_malloc()  # before any thread starts
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(args, "log_level", "INFO"), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")

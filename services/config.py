@@ -6,6 +6,8 @@ to join (``--connect tcp/HOST:7447``), not whatever answers on the LAN.
 
 from __future__ import annotations
 
+import ctypes
+
 import json
 import os
 from dataclasses import dataclass, field
@@ -109,3 +111,22 @@ def resolve(
 def resolve_rig(rig: str | None) -> str:
     """The rig name: flag, then ETAM_RIG, then the host name."""
     return keys.sanitize(rig or os.environ.get("ETAM_RIG") or keys.default_rig())
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # glibc mallopt parameters
+
+
+def tune_malloc(arena_max: int = 1, big_bytes: int = 64 << 20) -> bool:
+    """Keep freed memory for reuse instead of handing it back to the kernel after every event block.
+
+    glibc serves blocks above a few hundred kB with fresh mmaps and returns them on free, so every
+    decoded chunk and packet page-faults its memory anew (on a VM that halved file playback); with
+    several threads each gets its own arena and trims it on its own. Blocks up to `big_bytes` come
+    from one shared heap that is trimmed only when 4x that is free. False where libc is not glibc.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return all(libc.mallopt(param, value) == 1 for param, value in (
+            (_M_ARENA_MAX, arena_max), (_M_MMAP_THRESHOLD, big_bytes), (_M_TRIM_THRESHOLD, 4 * big_bytes)))
+    except (OSError, AttributeError):
+        return False

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -53,7 +54,8 @@ def _array(dtype: Any, shape: tuple[int | None, ...], optional: bool = False) ->
     return field(default=None if optional else dataclasses.MISSING, metadata={"spec": spec})
 
 
-def _encode_array(arr: np.ndarray) -> dict[str, Any]:
+def _array_parts(arr: np.ndarray) -> tuple[dict[str, Any], memoryview]:
+    """The dtype/shape header and the raw little-endian bytes of an array."""
     arr = np.ascontiguousarray(arr)
     if arr.dtype.names:
         dtype: Any = [[name, fmt] for name, fmt in arr.dtype.descr]
@@ -61,7 +63,43 @@ def _encode_array(arr: np.ndarray) -> dict[str, Any]:
         dtype = arr.dtype.newbyteorder("<").str if arr.dtype.byteorder == ">" else arr.dtype.str
         if arr.dtype.byteorder == ">":
             arr = arr.astype(dtype)
-    return {"dtype": dtype, "shape": list(arr.shape), "data": memoryview(arr.reshape(-1).view(np.uint8))}
+    return {"dtype": dtype, "shape": list(arr.shape)}, memoryview(arr.reshape(-1).view(np.uint8))
+
+
+def _encode_array(arr: np.ndarray) -> dict[str, Any]:
+    head, data = _array_parts(arr)
+    return {**head, "data": data}
+
+
+def _bin_header(n: int) -> bytes:
+    if n < 1 << 8:
+        return b"\xc4" + n.to_bytes(1, "big")
+    if n < 1 << 16:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")
+
+
+_local = threading.local()
+
+
+def _pack(body: dict[str, Any]) -> bytes:
+    """msgpack of `body` with its arrays' bytes spliced in: one copy per array. (`msgpack.packb`
+    allocates a 1 MiB buffer on every call; on a VM its page faults made a 234 kB EventPacket cost
+    150 us instead of 7.) The bytes are the same as packb's."""
+    packer = getattr(_local, "packer", None)
+    if packer is None:
+        packer = _local.packer = msgpack.Packer(use_bin_type=True, default=_pack_default)
+    parts: list[bytes | memoryview] = [packer.pack_map_header(len(body))]
+    for key, value in body.items():
+        parts.append(packer.pack(key))
+        if isinstance(value, np.ndarray):
+            head, data = _array_parts(value)
+            parts += [packer.pack_map_header(3), packer.pack("dtype"), packer.pack(head["dtype"]),
+                      packer.pack("shape"), packer.pack(head["shape"]), packer.pack("data"),
+                      _bin_header(len(data)), data]
+        else:
+            parts.append(packer.pack(value))
+    return b"".join(parts)
 
 
 def _parse_dtype(raw: Any, where: str) -> np.dtype:
@@ -163,7 +201,7 @@ class Message:
         if not body["sent"]:
             body["sent"] = time.time_ns()
         try:
-            return msgpack.packb(body, default=_pack_default, use_bin_type=True)
+            return _pack(body)
         except (TypeError, ValueError, OverflowError) as exc:
             raise MessageError(f"{self.TYPE}: cannot encode ({exc})") from None
 

@@ -187,3 +187,24 @@ def test_image_helpers_round_trip() -> None:
         assert np.array_equal(back, img)
     with pytest.raises(MessageError, match="Image.data"):
         m.image_to_array(m.Image(t=0, encoding="jpeg", width=2, height=2, data=b"not a jpeg"))
+
+
+def test_spliced_encoding_is_byte_for_byte_msgpack() -> None:
+    import dataclasses
+
+    from services.messages import _pack_default
+
+    for n in (0, 3, 300, 30_000):  # bin 8, 16 and 32 headers
+        msg = m.EventPacket(seq=2, stamp=9, sent=5, width=4, height=4, events=np.zeros(n, EVENT_DTYPE))
+        body = {"type": "EventPacket", "v": 1, **{f.name: getattr(msg, f.name) for f in dataclasses.fields(msg)}}
+        assert msg.encode() == msgpack.packb(body, default=_pack_default, use_bin_type=True)
+
+
+def test_malloc_tuning_applies_on_glibc() -> None:
+    import platform
+
+    from services.config import tune_malloc
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("mallopt is glibc's")
+    assert tune_malloc()

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from services.messages import EVENT_DTYPE, EventPacket, Tracks
+from services.messages import EVENT_DTYPE, EventPacket, Tracks, decode
 from services.runtime import Input
 from services.stats import KeyCounter
 
@@ -97,18 +97,17 @@ def test_wakes_a_waiting_consumer_from_another_thread_and_skips_malformed() -> N
     asyncio.run(main())
 
 
-def test_launcher_reads_message_headers_without_the_arrays() -> None:
+def test_peek_reads_message_headers_without_the_arrays() -> None:
     import msgpack
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from services.launcher import _header
-    from services.messages import Stats
+    from services.messages import Stats, peek
 
     packet = EventPacket(seq=7, stamp=1, width=8, height=8, events=np.zeros(123, EVENT_DTYPE)).encode()
-    assert _header(packet) == {"type": "EventPacket", "seq": 7, "count": 123}
-    assert _header(Tracks.from_boxes(0, [1, 2], [[0, 0, 1, 1], [1, 1, 1, 1]]).encode())["count"] == 2
-    assert "count" not in _header(Stats(service="a", name="b", keys=[]).encode())
+    assert peek(packet) == {"type": "EventPacket", "seq": 7, "count": 123, "sent": decode(packet).sent}
+    assert peek(Tracks.from_boxes(0, [1, 2], [[0, 0, 1, 1], [1, 1, 1, 1]]).encode())["count"] == 2
+    assert "count" not in peek(Stats(service="a", name="b", keys=[]).encode())
 
     values = st.recursive(st.none() | st.integers(-(2**63), 2**63 - 1) | st.text(max_size=4) | st.binary(max_size=8),
                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
@@ -119,7 +118,7 @@ def test_launcher_reads_message_headers_without_the_arrays() -> None:
     @settings(max_examples=300, deadline=None)
     def garbage_is_refused_with_known_errors(payload: bytes) -> None:
         try:
-            _header(payload)
+            peek(payload)
         except (ValueError, TypeError, LookupError, msgpack.UnpackException):
             pass
 

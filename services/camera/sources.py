@@ -7,6 +7,9 @@ The service decides the pacing (real time, faster, or as fast as possible).
 
 from __future__ import annotations
 
+import queue
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
@@ -107,8 +110,32 @@ class SimSource:
         return [(t, self.scene.depth(t)) for t in range(first, until_us + 1, DEPTH_PERIOD_US)]
 
 
+_END = object()
+
+
+def read_ahead(chunks: Iterator[np.ndarray], depth: int = 2) -> Iterator[np.ndarray]:
+    """`chunks`, decoded by a thread up to `depth` ahead of the consumer: the numba decoders release
+    the GIL, so reading overlaps with publishing. An error is raised where the consumer meets it."""
+    ready: queue.Queue = queue.Queue(maxsize=depth)
+
+    def produce() -> None:
+        try:
+            for chunk in chunks:
+                ready.put(chunk)
+            ready.put(_END)
+        except Exception as exc:  # noqa: BLE001 - handed over to the consumer, raised there
+            ready.put(exc)
+
+    threading.Thread(target=produce, name="read-ahead", daemon=True).start()
+    while (item := ready.get()) is not _END:
+        if isinstance(item, Exception):
+            raise item
+        yield item
+
+
 class FileSource:
-    """Plays a recording; with `loop` it starts again, shifted in time so that time keeps rising."""
+    """Plays a recording, read ahead on a thread; with `loop` it starts again, shifted in time so
+    that time keeps rising."""
 
     def __init__(self, recording: Recording, loop: bool = False) -> None:
         self.recording, self.loop = recording, loop
@@ -117,7 +144,7 @@ class FileSource:
         self.K = recording.K_or_default()
         self.calibration = recording.calibration
         self.T_body_cam = recording.calibration.T_body_cam if recording.calibration else None
-        self._chunks = recording.chunks()
+        self._chunks = read_ahead(recording.chunks())
         self._pending = np.empty(0, EVENT_DTYPE)
         self._shift_us = 0
         self._loaded_us: int | None = None  # time of the last event loaded, shifted
@@ -149,7 +176,7 @@ class FileSource:
             if not self.loop or self._loaded_us is None:
                 return False
             self._shift_us = self._loaded_us + 1 - self.start_us  # the next lap starts just after
-            self._chunks = self.recording.chunks()
+            self._chunks = read_ahead(self.recording.chunks())
             chunk = next(self._chunks, None)
             if chunk is None:
                 return False
@@ -194,8 +221,9 @@ class FileSource:
                 for i in np.flatnonzero((t > since_us) & (t <= until_us))]
 
     def loaded_until_us(self) -> int | None:
-        """Time of the last event already read from the file: advancing to it costs no copy."""
-        return int(self._pending["t"][-1]) if len(self._pending) else None
+        """Sensor time up to which every event is already read, so advancing to it costs no copy: just
+        before the last read event's time, whose fellows with the same time may open the next chunk."""
+        return int(self._pending["t"][-1]) - 1 if len(self._pending) else None
 
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
         if self._truth_rows is None:

@@ -15,9 +15,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from services.camera.formats.recording import (
-    CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, Truth, events_from_columns,
-)
+from services.camera.formats.kernels import interleave
+from services.camera.formats.recording import CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, Truth
+from services.messages import EVENT_DTYPE
 
 MAGIC = b"\x89HDF\r\n\x1a\n"
 DSEC_SIZE = (640, 480)
@@ -73,11 +73,16 @@ class H5Recording(Recording):
         return [self] + [H5Recording(self.path, name) for name in self.cameras[1:]]
 
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
-        ev = self._events
+        """Columns read into reused buffers, then interleaved into fresh records by one kernel."""
+        cols = [self._events[k] for k in "txyp"]
+        bufs = [np.empty(min(max_events, self.n_events), c.dtype) for c in cols]
         for start in range(0, self.n_events, max_events):
-            stop = min(start + max_events, self.n_events)
-            t = ev["t"][start:stop].astype(np.int64) + self._t_offset
-            yield events_from_columns(t, ev["x"][start:stop], ev["y"][start:stop], ev["p"][start:stop])
+            n = min(max_events, self.n_events - start)
+            for col, buf in zip(cols, bufs, strict=True):
+                col.read_direct(buf, np.s_[start:start + n], np.s_[:n])
+            out = np.empty(n, EVENT_DTYPE)
+            interleave(*(b[:n] for b in bufs), np.int64(self._t_offset), out)
+            yield out
 
     def close(self) -> None:
         self._file.close()

@@ -33,39 +33,48 @@ def evt2(words, state, out):  # noqa: ANN001, ANN201 - numba kernel
 
 @numba.njit(cache=True, nogil=True)
 def evt3(words, state, out):  # noqa: ANN001, ANN201 - numba kernel
-    """Prophesee EVT 3.0: state = [y, base_x, polarity, time_high, time_low, 24-bit wraps]."""
+    """Prophesee EVT 3.0: state = [y, base_x, polarity, time_high, time_low, 24-bit wraps].
+
+    Time changes only with time words, so it is composed there, not per event, and checked for order
+    at the first event after a change (a TIME_HIGH before its TIME_LOW steps back briefly, harmlessly);
+    vector words visit their bits only up to the highest set one."""
     y, base_x, pol, t_high, t_low, loops = state[0], state[1], state[2], state[3], state[4], state[5]
-    n, last, unsorted = 0, np.int64(-1), False
+    n, unsorted, last, moved = 0, False, np.int64(-1), True
+    t = (loops << 24) | (t_high << 12) | t_low
     for i in range(len(words)):
         w = np.int64(words[i])
         kind = w >> 12
-        if kind == 0x0:  # EVT_ADDR_Y
-            y = w & 0x7FF
-        elif kind == 0x2:  # EVT_ADDR_X: one event
-            t = (loops << 24) | (t_high << 12) | t_low
-            out[n].t, out[n].x, out[n].y, out[n].p = t, w & 0x7FF, y, (w >> 11) & 1
+        if moved and (kind == 0x2 or ((kind == 0x4 or kind == 0x5) and w & 0xFFF)):
             unsorted |= t < last
-            last = t
+            last, moved = t, False
+        if kind == 0x2:  # EVT_ADDR_X: one event
+            e = out[n]
+            e.t, e.x, e.y, e.p = t, w & 0x7FF, y, (w >> 11) & 1
             n += 1
-        elif kind == 0x3:  # VECT_BASE_X
-            base_x, pol = w & 0x7FF, (w >> 11) & 1
+        elif kind == 0x0:  # EVT_ADDR_Y
+            y = w & 0x7FF
         elif kind == 0x4 or kind == 0x5:  # VECT_12 / VECT_8: a bit per pixel from base_x
             width = 12 if kind == 0x4 else 8
-            t = (loops << 24) | (t_high << 12) | t_low
-            for b in range(width):
-                if (w >> b) & 1:
-                    out[n].t, out[n].x, out[n].y, out[n].p = t, base_x + b, y, pol
+            bits, x = w & ((1 << width) - 1), base_x
+            while bits:
+                if bits & 1:
+                    e = out[n]
+                    e.t, e.x, e.y, e.p = t, x, y, pol
                     n += 1
-            unsorted |= t < last
-            last = t
+                bits >>= 1
+                x += 1
             base_x += width
-        elif kind == 0x6:  # EVT_TIME_LOW
-            t_low = w & 0xFFF
-        elif kind == 0x8:  # EVT_TIME_HIGH; the 24-bit time wraps every 16.8 s
-            high = w & 0xFFF
-            if high < t_high and t_high - high > 0x800:
-                loops += 1
-            t_high = high
+        elif kind == 0x3:  # VECT_BASE_X
+            base_x, pol = w & 0x7FF, (w >> 11) & 1
+        elif kind == 0x6 or kind == 0x8:  # EVT_TIME_LOW / EVT_TIME_HIGH (24-bit time wraps every 16.8 s)
+            if kind == 0x6:
+                t_low = w & 0xFFF
+            else:
+                high = w & 0xFFF
+                if high < t_high and t_high - high > 0x800:
+                    loops += 1
+                t_high = high
+            t, moved = (loops << 24) | (t_high << 12) | t_low, True
     state[0], state[1], state[2], state[3], state[4], state[5] = y, base_x, pol, t_high, t_low, loops
     return n, unsorted
 
@@ -77,6 +86,14 @@ def dv_events(raw, out, start):  # noqa: ANN001, ANN201 - numba kernel
         r = raw[i]
         out[start + i].t, out[start + i].x, out[start + i].y, out[start + i].p = r.t, r.x, r.y, r.on
     return start + len(raw)
+
+
+@numba.njit(cache=True, nogil=True)
+def interleave(t, x, y, p, t_offset, out):  # noqa: ANN001, ANN201 - numba kernel
+    """Columns (any integer types) into event records, adding `t_offset` to time: one pass."""
+    for i in range(len(t)):
+        e = out[i]
+        e.t, e.x, e.y, e.p = t[i] + t_offset, x[i], y[i], p[i]
 
 
 @numba.njit(cache=True, nogil=True)

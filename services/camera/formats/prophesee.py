@@ -74,7 +74,7 @@ class RawRecording(Recording):
         self.width, self.height = size
 
     def chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[np.ndarray]:
-        words_per_block = max(1024, max_events // 4)
+        words_per_block = max(1024, max_events)  # large blocks: fewer packets spanning two chunks
         decode = _Decoder(kernels.evt2, 1, 1) if self._word == 4 else _Decoder(kernels.evt3, 12, 6)
         offset = self.data_offset
         with open(self.path, "rb") as f:
