@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import cv2
+import numba
 import numpy as np
 
 from services.camera.filters import Refractory
@@ -189,6 +190,38 @@ class ObjectsScene:
                 np.asarray(solid, np.float32).reshape(-1, 4))
 
 
+@numba.njit(cache=True, nogil=True)
+def _crossings(last, cur, ref, c, t0, t1, width):  # noqa: ANN001, ANN202 - numba kernel
+    """Events of every pixel whose log intensity crossed reference levels between two renders
+    (`last` at t0, `cur` at t1), each timed by linear interpolation; moves `ref` (in place) by
+    the levels crossed. A pixel that did not change crossed nothing: after each render every
+    pixel is within one threshold of its reference. Ordered by pixel, not yet by time."""
+    total = 0
+    for i in range(len(cur)):
+        if cur[i] != last[i]:
+            total += int(abs(cur[i] - ref[i]) / c[i])
+    out = np.empty(total, EVENT_DTYPE)
+    n = 0
+    span = t1 - t0 - 1
+    for i in range(len(cur)):
+        if cur[i] == last[i]:
+            continue
+        delta = cur[i] - ref[i]
+        count = int(abs(delta) / c[i])
+        if count == 0:
+            continue
+        step = c[i] if delta > 0 else -c[i]
+        l0, l1 = np.float64(last[i]), np.float64(cur[i])
+        for k in range(1, count + 1):
+            frac = (ref[i] + step * k - l0) / (l1 - l0) if l1 != l0 else 1.0
+            frac = min(max(frac, 0.0), 1.0)
+            e = out[n]
+            e.t, e.x, e.y, e.p = t0 + 1 + np.int64(np.round(frac * span)), i % width, i // width, delta > 0
+            n += 1
+        ref[i] += step * count
+    return out
+
+
 class EventSimulator:
     """Turns a scene's log intensity over time into events (see the module docstring)."""
 
@@ -220,26 +253,8 @@ class EventSimulator:
     def _step(self, t1: int) -> np.ndarray:
         t0 = self.t_us
         cur = self.scene.render(t1)
-        # a pixel whose intensity did not change cannot cross a level: after the last render every
-        # pixel is within one threshold of its reference
-        changed = np.flatnonzero(cur.ravel() != self._last.ravel())
-        delta_c = cur.ravel()[changed] - self._ref.ravel()[changed]
-        n_c = np.floor(np.abs(delta_c) / self._c.ravel()[changed]).astype(np.int64)
-        crossing = n_c > 0
-        ys, xs = np.divmod(changed[crossing], self.scene.width)
-        counts = n_c[crossing]
-        sign = np.sign(delta_c[crossing])
-        # k-th crossing level of each pixel, timed on the straight line from the last to this render
-        k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + 1
-        rep = np.repeat(np.arange(len(xs)), counts)
-        level = self._ref[ys, xs][rep] + (sign * self._c[ys, xs])[rep] * k
-        l0, l1 = self._last[ys, xs][rep], cur[ys, xs][rep]
-        frac = np.clip((level - l0) / np.where(l1 != l0, l1 - l0, 1.0), 0.0, 1.0)
-        ev = np.empty(len(rep), EVENT_DTYPE)
-        ev["t"] = t0 + 1 + np.round(frac * (t1 - t0 - 1)).astype(np.int64)
-        ev["x"], ev["y"] = xs[rep], ys[rep]
-        ev["p"] = (sign[rep] > 0).astype(np.uint8)
-        self._ref[ys, xs] += sign * counts * self._c[ys, xs]
+        ev = _crossings(self._last.ravel(), cur.ravel(), self._ref.ravel(), self._c.ravel(), t0, t1,
+                        self.scene.width)
         self._last, self.t_us = cur, t1
         ev = np.concatenate([ev, self._noise(t0, t1), self._hot_pixels(t0, t1)])
         ev = ev[np.argsort(ev["t"], kind="stable")]

@@ -11,12 +11,52 @@ scenes with the same seed, the second with `baseline_m`: it sits that far along 
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from services.camera.simulator import _texture
 
 TEXTURE_PX_PER_M = 200.0
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _ray_cast(o, R, rays, planes, box_lo, box_hi, px_per_m, tex_size):  # noqa: ANN001, ANN202 - numba kernel
+    """Nearest hit of each ray (camera frame, rotated by R, from o) on axis-aligned planes
+    (axis, coordinate) and boxes (lo, hi corners): distance along the ray, and the texture pixel
+    (wrapped) of the point's coordinates along the surface; boxes' faces get shifted patches."""
+    n = len(rays)
+    best = np.full(n, np.inf, np.float32)
+    u = np.zeros(n, np.float32)
+    v = np.zeros(n, np.float32)
+    for i in numba.prange(n):  # pixels are independent: one per thread in turn
+        r0, r1, r2 = rays[i, 0], rays[i, 1], rays[i, 2]
+        d = (R[0, 0] * r0 + R[0, 1] * r1 + R[0, 2] * r2, R[1, 0] * r0 + R[1, 1] * r1 + R[1, 2] * r2,
+             R[2, 0] * r0 + R[2, 1] * r1 + R[2, 2] * r2)
+        hit, hu, hv = np.inf, 0.0, 0.0
+        for j in range(len(planes)):
+            axis = int(planes[j, 0])
+            if d[axis] == 0:
+                continue
+            dist = (planes[j, 1] - o[axis]) / d[axis]
+            if 0 < dist < hit:
+                a, b = (1, 2) if axis == 0 else ((0, 2) if axis == 1 else (0, 1))
+                hit, hu, hv = dist, o[a] + dist * d[a], o[b] + dist * d[b]
+        for j in range(len(box_lo)):
+            near, far, face = -np.inf, np.inf, 0
+            for k in range(3):
+                inv = 1.0 / d[k] if d[k] != 0 else 1e9
+                t0, t1 = (box_lo[j, k] - o[k]) * inv, (box_hi[j, k] - o[k]) * inv
+                lo, hi = min(t0, t1), max(t0, t1)
+                if lo > near:
+                    near, face = lo, k
+                far = min(far, hi)
+            if near <= far and 0 < near < hit:
+                a = 1 if face == 0 else 0
+                b = 1 if face == 2 else 2
+                hit, hu, hv = near, o[a] + near * d[a] + 7.0 * face, o[b] + near * d[b]
+        best[i], u[i], v[i] = hit, hu * px_per_m % tex_size, hv * px_per_m % tex_size
+    return best, u, v
 
 
 class SixDofScene:
@@ -40,6 +80,9 @@ class SixDofScene:
             size = rng.uniform(0.3, 0.6, 3)
             centre = np.array([rng.uniform(-1.0, 1.0), rng.uniform(0.3, 1.2) - size[1] / 2, rng.uniform(1.2, 3.0)])
             self.boxes.append((centre - size / 2, centre + size / 2))
+        self._planes = np.array(self.planes, np.float64)
+        self._box_lo = np.array([lo for lo, _ in self.boxes], np.float64).reshape(-1, 3)
+        self._box_hi = np.array([hi for _, hi in self.boxes], np.float64).reshape(-1, 3)
         ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
         rays = np.stack([(xs - width / 2) / self.focal_px, (ys - height / 2) / self.focal_px, np.ones_like(xs)], -1)
         self._rays = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
@@ -74,39 +117,13 @@ class SixDofScene:
         return float(np.linalg.norm(self.omega(t_us)) * self._reach_px + v / 0.5 * self.focal_px)
 
     def _hits(self, t_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per pixel: ray length to the nearest surface, and that point's two texture coordinates (m)."""
-        o = self.position(t_us)
-        d = (self._rays @ self.rotation(t_us).as_matrix().T).astype(np.float32)
-        inv = 1.0 / np.where(d == 0, np.float32(1e-9), d)
-        best = np.full(len(d), np.inf, np.float32)
-        u = np.zeros(len(d), np.float32)
-        v = np.zeros(len(d), np.float32)
-        for axis, c in self.planes:
-            dist = (c - o[axis]) * inv[:, axis]
-            closer = (dist > 0) & (dist < best)
-            a, b = [k for k in range(3) if k != axis]
-            best[closer] = dist[closer]
-            u[closer] = o[a] + dist[closer] * d[closer, a]
-            v[closer] = o[b] + dist[closer] * d[closer, b]
-        for lo, hi in self.boxes:
-            t0, t1 = (lo - o) * inv, (hi - o) * inv
-            near, far = np.minimum(t0, t1), np.maximum(t0, t1)
-            face = near.argmax(axis=1)
-            dist = near[np.arange(len(d)), face]
-            closer = (dist <= far.min(axis=1)) & (dist > 0) & (dist < best)
-            idx = np.flatnonzero(closer)
-            f = face[idx]
-            a, b = np.where(f == 0, 1, 0), np.where(f == 2, 1, 2)  # the two axes along the face
-            best[idx] = dist[idx]
-            u[idx] = o[a] + dist[idx] * d[idx, a] + 7.0 * f  # faces get different texture patches
-            v[idx] = o[b] + dist[idx] * d[idx, b]
-        return best, u, v
+        """Per pixel: ray length to the nearest surface, and the texture pixel seen there (x, y)."""
+        return _ray_cast(self.position(t_us), self.rotation(t_us).as_matrix(), self._rays, self._planes,
+                         self._box_lo, self._box_hi, TEXTURE_PX_PER_M, float(self._log_tex.shape[0]))
 
     def render(self, t_us: float) -> np.ndarray:
         _, u, v = self._hits(t_us)
-        n = self._log_tex.shape[0]
-        map_x = (u * TEXTURE_PX_PER_M % n).astype(np.float32).reshape(self.height, self.width)
-        map_y = (v * TEXTURE_PX_PER_M % n).astype(np.float32).reshape(self.height, self.width)
+        map_x, map_y = u.reshape(self.height, self.width), v.reshape(self.height, self.width)
         return cv2.remap(self._log_tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
     def depth(self, t_us: float) -> np.ndarray:
