@@ -62,7 +62,6 @@ def _cmd_camera(args: argparse.Namespace) -> int:
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     from services.camera.filters import parse_chain
-
     from services.camera.simulator import SimParams
 
     params = SimParams.parse(args.sim_param or [])

@@ -7,7 +7,6 @@ to join (``--connect tcp/HOST:7447``), not whatever answers on the LAN.
 from __future__ import annotations
 
 import ctypes
-
 import json
 import os
 from dataclasses import dataclass, field

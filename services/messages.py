@@ -10,6 +10,7 @@ are decoded with ``np.frombuffer`` (no copy, read-only views). Anything malforme
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 import threading
 import time
@@ -54,11 +55,17 @@ def _array(dtype: Any, shape: tuple[int | None, ...], optional: bool = False) ->
     return field(default=None if optional else dataclasses.MISSING, metadata={"spec": spec})
 
 
+@functools.lru_cache(maxsize=64)
+def _record_descr(dtype: np.dtype) -> list[list[str]]:
+    """[[name, format], ...] of a structured dtype (numpy builds `descr` in Python: 14 us a call)."""
+    return [[name, fmt] for name, fmt in dtype.descr]
+
+
 def _array_parts(arr: np.ndarray) -> tuple[dict[str, Any], memoryview]:
     """The dtype/shape header and the raw little-endian bytes of an array."""
     arr = np.ascontiguousarray(arr)
     if arr.dtype.names:
-        dtype: Any = [[name, fmt] for name, fmt in arr.dtype.descr]
+        dtype: Any = _record_descr(arr.dtype)
     else:
         dtype = arr.dtype.newbyteorder("<").str if arr.dtype.byteorder == ">" else arr.dtype.str
         if arr.dtype.byteorder == ">":

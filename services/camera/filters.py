@@ -16,6 +16,7 @@ import cv2
 import numba
 import numpy as np
 
+from services import events as ev_ops
 from services.messages import EVENT_DTYPE
 
 
@@ -185,7 +186,7 @@ class Undistort:
         events = _inside(events, self.width, self.height)
         idx = events["y"].astype(np.int64) * self.width + events["x"]
         keep = self._ok[idx]
-        out = events[keep]  # a copy: the input may be a read-only view on a message
+        out = ev_ops.take(events, keep)  # a copy: the input may be a read-only view on a message
         out["x"], out["y"] = self._x[idx[keep]], self._y[idx[keep]]
         return out
 

@@ -9,8 +9,8 @@ import numpy as np
 from tqdm import tqdm
 
 from services.camera.formats import open_recording
-from services.camera.formats.recording import EventWriter
 from services.camera.formats.hdf5 import H5Writer
+from services.camera.formats.recording import EventWriter
 from services.camera.simulator import SimParams
 from services.camera.sources import SimSource, open_sources
 

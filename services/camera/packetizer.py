@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services import events
 from services.camera.formats.kernels import first_at_or_after
-from services.messages import EVENT_DTYPE
 
 
 class Packetizer:
@@ -56,6 +56,4 @@ class Packetizer:
                 self._chunks[0] = chunk[cut:]
                 break
             self._chunks.pop(0)
-        if len(pieces) == 1:
-            return pieces[0]
-        return np.concatenate(pieces) if pieces else np.empty(0, EVENT_DTYPE)
+        return pieces[0] if len(pieces) == 1 else events.concat(pieces)

@@ -7,8 +7,8 @@ import logging
 import re
 import time
 
-from services.camera.filters import FilterChain
 from services import keys
+from services.camera.filters import FilterChain
 from services.camera.packetizer import Packetizer
 from services.camera.sources import EventSource
 from services.messages import CameraInfo, EventPacket, ImuPacket, Pose, Tracks, image_from_array

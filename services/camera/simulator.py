@@ -21,9 +21,9 @@ import cv2
 import numba
 import numpy as np
 
+from services import events
 from services.camera.filters import Refractory
 from services.messages import EVENT_DTYPE
-
 
 LOG_EPS = 1e-3  # keeps log intensity finite on black
 
@@ -248,7 +248,7 @@ class EventSimulator:
             dt = p.max_dt_us if speed <= 0 else int(np.clip(p.max_step_px / speed * 1e6, p.min_dt_us, p.max_dt_us))
             t1 = min(self.t_us + dt, until_us)
             chunks.append(self._step(t1))
-        return np.concatenate(chunks) if chunks else np.empty(0, EVENT_DTYPE)  # steps are sorted and in order
+        return events.concat(chunks)  # steps are sorted and in order
 
     def _step(self, t1: int) -> np.ndarray:
         t0 = self.t_us
@@ -256,8 +256,7 @@ class EventSimulator:
         ev = _crossings(self._last.ravel(), cur.ravel(), self._ref.ravel(), self._c.ravel(), t0, t1,
                         self.scene.width)
         self._last, self.t_us = cur, t1
-        ev = np.concatenate([ev, self._noise(t0, t1), self._hot_pixels(t0, t1)])
-        ev = ev[np.argsort(ev["t"], kind="stable")]
+        ev = events.sort_by_time(events.concat([ev, self._noise(t0, t1), self._hot_pixels(t0, t1)]))
         return self._refractory(ev) if self.params.refractory_us > 0 else ev
 
     def _hot_pixels(self, t0: int, t1: int) -> np.ndarray:

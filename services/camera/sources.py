@@ -15,6 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
+from services import events
 from services.camera.formats import Calibration, FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.camera.rotation_scene import RotationScene
@@ -181,7 +182,7 @@ class FileSource:
             if chunk is None:
                 return False
         if self._shift_us:
-            chunk = chunk.copy()
+            chunk = events.copy(chunk)
             chunk["t"] += self._shift_us
         if len(chunk):
             self._loaded_us = int(chunk["t"][-1])
@@ -202,7 +203,7 @@ class FileSource:
                 break
         if len(parts) == 1:
             return parts[0]  # a view on the chunk: no copy
-        return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
+        return events.concat(parts)
 
     def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
         rows = self.recording.truth.poses  # TUM: t_s, p, q

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services import events
 from services.camera.formats import kernels
 from services.camera.formats.recording import CHUNK_EVENTS, FormatError, Recording, events_from_columns
 from services.messages import EVENT_DTYPE
@@ -84,9 +85,9 @@ class RawRecording(Recording):
                 if not block:
                     return
                 whole = len(block) - len(block) % self._word
-                events = decode(np.frombuffer(block, "<u4" if self._word == 4 else "<u2", whole // self._word))
-                for start in range(0, len(events), max_events):
-                    yield events[start:start + max_events]
+                decoded = decode(np.frombuffer(block, "<u4" if self._word == 4 else "<u2", whole // self._word))
+                for start in range(0, len(decoded), max_events):
+                    yield decoded[start:start + max_events]
                 if whole < len(block):
                     raise FormatError(self.path, f"truncated: {len(block) - whole} bytes of a {self._word}-byte "
                                       "word at the end", offset + whole)
@@ -105,7 +106,7 @@ class _Decoder:
         n, unsorted = self.kernel(words, self.state, out)
         out = out[:n]
         # sensors emit events very nearly in time order; make a block exactly so
-        return out[np.argsort(out["t"], kind="stable")] if unsorted else out
+        return events.sort_by_time(out) if unsorted else out
 
 
 class DatRecording(Recording):

@@ -10,6 +10,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from services import events
 from services.messages import EVENT_DTYPE
 
 CHUNK_EVENTS = 1 << 18  # events per chunk a reader yields: bounded memory whatever the file size
@@ -88,8 +89,7 @@ class Recording(ABC):
 
     def read_all(self) -> np.ndarray:
         """Every event at once (for small files and tests)."""
-        parts = list(self.chunks())
-        return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
+        return events.concat(list(self.chunks()))
 
     def K_or_default(self) -> np.ndarray:
         """The calibrated K, or a guess (90 degrees horizontal field of view) when uncalibrated."""

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services import events
+
 
 class DecayedAccumulator:
     """Accepts event arrays and generates the decayed count image at a given time (us)."""
@@ -28,10 +30,10 @@ class DecayedAccumulator:
         if self.t_us is not None:
             self.image *= np.float32(np.exp(-max(t_us - self.t_us, 0) / self.tau_us))
         if self._pending:
-            ev = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+            ev = events.concat(self._pending) if len(self._pending) > 1 else self._pending[0]
             self._pending = []
             inside = (ev["x"] < self.width) & (ev["y"] < self.height)
-            ev = ev[inside]
+            ev = events.take(ev, inside)
             weights = np.exp(-np.maximum(t_us - ev["t"], 0) / self.tau_us)
             idx = ev["y"].astype(np.int64) * self.width + ev["x"]
             counts = np.bincount(idx, weights, self.width * self.height)
