@@ -164,3 +164,17 @@ def test_tracking_resumes_after_the_camera_restarts(tmp_path: Path, rig: str) ->
             proc.kill()
     after = stamps[restart:]
     assert after[0] < 1_000_000 and after == sorted(after)  # the new camera's clock, in order
+
+
+def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig: str) -> None:
+    """sim:rotation renders at about a tenth of real time: the camera must take bounded steps (and
+    say it lags), not one ever longer step that silences its Stats until the launcher kills it."""
+    report_path = tmp_path / "r.json"
+    proc = _up(rig, report_path, 14, "--source", "sim:rotation")
+    _out, err = proc.communicate(timeout=90)
+    assert proc.returncode == 0, err
+    report = json.loads(report_path.read_text())
+    assert report["services"]["camera"]["restarts"] == 0
+    assert report["keys"][f"etam/{rig}/camera/cam0/stats"]["messages"] >= 7  # Stats kept flowing
+    assert report["keys"][f"etam/{rig}/camera/cam0/truth/pose"]["messages"] > 5
+    assert "plays slower than real time" in err

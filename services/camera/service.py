@@ -17,6 +17,8 @@ from services.runtime import Service, ServiceOptions
 log = logging.getLogger(__name__)
 
 FAST_STEP_US = 20_000  # sensor time per step when playing as fast as possible (`rate` 0)
+MAX_STEP_US = 100_000  # at most this much sensor time (x rate) per step in real time: Stats keep flowing
+LAG_WARN_US = 2_000_000
 
 
 def camera_names(first: str, count: int) -> list[str]:
@@ -98,6 +100,7 @@ class CameraService(Service):
         self.slice_us, self.max_events = slice_us, max_events
         self.rate, self.tick_s = rate, tick_s
         self.status["source"] = sources[0].name
+        self._warned_lag = False
 
     async def main(self) -> None:
         fast = self.rate == 0
@@ -124,7 +127,12 @@ class CameraService(Service):
             if self.paused or done:
                 wall0, sensor0 = time.monotonic(), sensor_us  # resume from here, not in a rush
                 continue
-            until = self._fast_until(sensor_us) if fast else sensor0 + int((time.monotonic() - wall0) * 1e6 * self.rate)
+            if fast:
+                until = self._fast_until(sensor_us)
+            else:  # bounded steps: a source slower than real time lags behind, the service stays responsive
+                target = sensor0 + int((time.monotonic() - wall0) * 1e6 * self.rate)
+                until = min(target, sensor_us + int(MAX_STEP_US * max(self.rate, 1.0)))
+                self._note_lag(target - until)
             for cam in cams:
                 cam.play(sensor_us, until)
             sensor_us = until
@@ -132,6 +140,14 @@ class CameraService(Service):
                 for cam in cams:
                     cam.play(sensor_us, sensor_us + self.slice_us)  # flush the last slice
                     cam.report_end()
+
+    def _note_lag(self, behind_us: int) -> None:
+        self.status["behind_s"] = round(behind_us / 1e6, 3)
+        if behind_us > LAG_WARN_US and not self._warned_lag:
+            self._warned_lag = True
+            log.warning("%s plays slower than real time (%.1f s behind and falling back): its stream lags "
+                        "the wall clock; `etam sim` writes it to a file that plays in real time",
+                        self.sources[0].name, behind_us / 1e6)
 
     def _fast_until(self, sensor_us: int) -> int:
         """The next step when playing as fast as possible: to the end of what every file reader has
