@@ -119,10 +119,17 @@ def tune_malloc(arena_max: int = 1, big_bytes: int = 64 << 20) -> bool:
     """Keep freed memory for reuse instead of handing it back to the kernel after every event block.
 
     glibc serves blocks above a few hundred kB with fresh mmaps and returns them on free, so every
-    decoded chunk and packet page-faults its memory anew (on a VM that halved file playback); with
+    decoded chunk and packet page-faulted its memory anew (on a VM that halved file playback); with
     several threads each gets its own arena and trims it on its own. Blocks up to `big_bytes` come
-    from one shared heap that is trimmed only when 4x that is free. False where libc is not glibc.
+    from one shared heap that is trimmed only when 4x that is free. numpy's advice to back arrays
+    with huge pages is turned off too: it doubled the cost of allocating a decoder's output block.
+    False where libc is not glibc.
     """
+    import numpy as np
+
+    set_hugepage = getattr(getattr(np, "_core", np).multiarray, "_set_madvise_hugepage", None)
+    if set_hugepage is not None:
+        set_hugepage(False)
     try:
         libc = ctypes.CDLL("libc.so.6")
         return all(libc.mallopt(param, value) == 1 for param, value in (
