@@ -108,8 +108,10 @@ def format_results(results: dict) -> str:
         if "error" in row:
             lines.append(f"{row['stage']}: {row['error']}")
             continue
-        lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.1f} Mev/s, {row['events']} of "
-                     f"{row['file_events']} events, {row['seq_gaps']} sequence gaps")
+        lines.append(f"{row['stage']}: median {row['events_per_s'] / 1e6:.1f} Mev/s (worst "
+                     f"{row['worst_events_per_s'] / 1e6:.1f}, best {row['best_events_per_s'] / 1e6:.1f}) over "
+                     f"{row['plays']} plays of {row['file_events']} events; received {row['events']}, "
+                     f"{row['seq_gaps']} sequence gaps")
     for key in ("tracker", "simulator"):
         for row in results.get(key, []):
             extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))

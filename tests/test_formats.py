@@ -443,3 +443,12 @@ def test_a_stereo_file_plays_both_cameras_with_calibration_and_depth(stereo_file
         assert [d.t for d in depth[name]] == cam.truth.depth_t.tolist()
         assert np.array_equal(image_to_array(depth[name][-1]), cam.truth.depth_maps[-1], equal_nan=True)
     assert np.allclose(info.T_body_cam, cams[1].calibration.T_body_cam)
+
+
+@needs_real
+def test_bench_playback_delivers_every_event_of_a_dense_file() -> None:
+    from benchmarks import playback
+
+    (row,) = playback.run(quick=True)
+    assert row["complete"] and row["seq_gaps"] == 0 and row["events"] == [row["file_events"]]
+    assert row["file_events"] > 8_000_000 and row["events_per_s"] > 0
