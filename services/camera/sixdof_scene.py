@@ -33,20 +33,20 @@ def _ray_cast(o, R, rays, planes, box_lo, box_hi, px_per_m, tex_size):  # noqa: 
         r0, r1, r2 = rays[i, 0], rays[i, 1], rays[i, 2]
         d = (R[0, 0] * r0 + R[0, 1] * r1 + R[0, 2] * r2, R[1, 0] * r0 + R[1, 1] * r1 + R[1, 2] * r2,
              R[2, 0] * r0 + R[2, 1] * r1 + R[2, 2] * r2)
+        inv = (1.0 / d[0] if d[0] != 0 else 1e9, 1.0 / d[1] if d[1] != 0 else 1e9, 1.0 / d[2] if d[2] != 0 else 1e9)
         hit, hu, hv = np.inf, 0.0, 0.0
         for j in range(len(planes)):
             axis = int(planes[j, 0])
             if d[axis] == 0:
                 continue
-            dist = (planes[j, 1] - o[axis]) / d[axis]
+            dist = (planes[j, 1] - o[axis]) * inv[axis]
             if 0 < dist < hit:
                 a, b = (1, 2) if axis == 0 else ((0, 2) if axis == 1 else (0, 1))
                 hit, hu, hv = dist, o[a] + dist * d[a], o[b] + dist * d[b]
         for j in range(len(box_lo)):
             near, far, face = -np.inf, np.inf, 0
             for k in range(3):
-                inv = 1.0 / d[k] if d[k] != 0 else 1e9
-                t0, t1 = (box_lo[j, k] - o[k]) * inv, (box_hi[j, k] - o[k]) * inv
+                t0, t1 = (box_lo[j, k] - o[k]) * inv[k], (box_hi[j, k] - o[k]) * inv[k]
                 lo, hi = min(t0, t1), max(t0, t1)
                 if lo > near:
                     near, face = lo, k
