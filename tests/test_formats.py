@@ -452,3 +452,12 @@ def test_bench_playback_delivers_every_event_of_a_dense_file() -> None:
     (row,) = playback.run(quick=True)
     assert row["complete"] and row["seq_gaps"] == 0 and row["events"] == [row["file_events"]]
     assert row["file_events"] > 8_000_000 and row["events_per_s"] > 0
+
+
+def test_bench_simulator_times_every_scene() -> None:
+    run = subprocess.run(etam_argv("bench", "--quick", "--only", "simulator", "--json"), capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    rows = {r["stage"]: r for r in json.loads(run.stdout)["simulator"]}
+    assert set(rows) == {f"camera.simulator.{s}" for s in ("objects", "rotation", "6dof", "stereo")}
+    assert all(r["events"] > 1000 and r["realtime_factor"] > 0 for r in rows.values())
