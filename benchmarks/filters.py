@@ -58,14 +58,17 @@ def _ours(packets: list[np.ndarray]) -> tuple[float, np.ndarray]:
 
 
 def dv_stores(packets: list[np.ndarray]) -> list:
-    """dv-processing EventStores of the packets (built event by event: its only way in from numpy)."""
+    """dv-processing EventStores of the packets, built event by event (its only way in from numpy),
+    from plain Python lists, the fastest way to feed it."""
     import dv_processing as dv
 
     stores = []
     for p in packets:
         store = dv.EventStore()
-        for e in p:
-            store.push_back(int(e["t"]), int(e["x"]), int(e["y"]), bool(e["p"]))
+        push = store.push_back
+        for t, x, y, on in zip(p["t"].tolist(), p["x"].tolist(), p["y"].tolist(), (p["p"] != 0).tolist(),
+                               strict=True):
+            push(t, x, y, on)
         stores.append(store)
     return stores
 

@@ -59,7 +59,7 @@ def _simulator(quick: bool) -> list[dict]:
 
 
 BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
-    "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0),
+    "transport": lambda quick: transport.run(duration_s=1.0 if quick else 3.0, peer_packets=50 if quick else 300),
     "readers": readers.run,
     "filters": filters.run,
     "writers": writers.run,
@@ -93,6 +93,14 @@ def format_results(results: dict) -> str:
             f"({row['events_per_packet']} ev/packet): {row['messages_per_s']:7.0f} msg/s "
             f"{row['events_per_s'] / 1e6:6.2f} Mev/s delivered, lost {row['lost_messages']}, "
             f"latency p50 {row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms")
+        if "ratio" in row:
+            lines.append(
+                f"  beside dv-processing: NetworkWriter -> NetworkReader {row['peer_events_per_s'] / 1e6:.1f} Mev/s "
+                f"(complete: {row['peer_complete']}), ratio {row['ratio']:.2f}; numpy -> packet ETAM "
+                f"{row['etam_ingest_events_per_s'] / 1e6:.0f} Mev/s, -> EventStore "
+                f"{row['peer_ingest_events_per_s'] / 1e6:.2f} Mev/s, ratio {row['ingest_ratio']:.0f}")
+        elif row.get("peer_error"):
+            lines.append(f"  dv-processing: {row['peer_error']}")
     for row in results.get("readers", []):
         peer = (f"{row['peer_events_per_s'] / 1e6:6.1f} Mev/s, ratio {row['ratio']:.2f}" if row["ratio"]
                 else row["peer_error"])

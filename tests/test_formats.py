@@ -461,3 +461,13 @@ def test_bench_simulator_times_every_scene() -> None:
     rows = {r["stage"]: r for r in json.loads(run.stdout)["simulator"]}
     assert set(rows) == {f"camera.simulator.{s}" for s in ("objects", "rotation", "6dof", "stereo")}
     assert all(r["events"] > 1000 and r["realtime_factor"] > 0 for r in rows.values())
+
+
+def test_bench_transport_sets_zenoh_beside_dv_network_transport() -> None:
+    run = subprocess.run(etam_argv("bench", "--quick", "--only", "transport", "--json"), capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    rows = json.loads(run.stdout)["transport"]
+    assert all(r["lost_messages"] == 0 for r in rows)
+    (peer,) = [r for r in rows if r["offered_events_per_s"] == "max"]
+    assert peer["peer_complete"] and peer["ratio"] > 0 and peer["ingest_ratio"] > 0
