@@ -184,6 +184,29 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_track(args: argparse.Namespace) -> int:
+    from services.tracker.offline import track
+
+    if not Path(args.input).exists():
+        raise config.ConfigError(f"{args.input}: no such file")
+    summary = track(Path(args.input), Path(args.out), progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['boxes']} boxes of {summary['track_ids']} tracks "
+          f"({summary['updates']} updates, {summary['events']} events) to {args.out}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from services.tracker.offline import eval_tracking
+
+    scores = eval_tracking(Path(args.pred), Path(args.truth))
+    if args.json:
+        print(json.dumps(scores))
+    else:
+        for k, v in scores.items():
+            print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
+    return 0
+
+
 def _cmd_convert(args: argparse.Namespace) -> int:
     from services.camera.offline import convert
 
@@ -302,6 +325,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
     p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
     p.set_defaults(func=_cmd_sim)
+
+    p = sub.add_parser("track", help="track moving objects in a recording into a CSV (t_us,id,x,y,w,h,score)")
+    p.add_argument("input", help="any readable event file")
+    p.add_argument("--out", default="tracks.csv", help="tracks CSV to write (default tracks.csv)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
+    p.set_defaults(func=_cmd_track)
+
+    p = sub.add_parser("eval", help="score results against ground truth")
+    kinds = p.add_subparsers(dest="kind", required=True, metavar="KIND")
+    q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches")
+    q.add_argument("--pred", required=True, help="tracks CSV from etam track")
+    q.add_argument("--truth", required=True, help="a recording with /truth/boxes (e.g. from etam sim objects)")
+    q.add_argument("--json", action="store_true", help="machine-readable output")
+    q.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("info", help="sensor size, events, duration, rate, polarity, IMU and truth of a file")
     p.add_argument("file", help="an event file or ECD folder")

@@ -60,7 +60,7 @@ def test_router_config_serves_a_rig(tmp_path: Path, rig: str) -> None:
 
 
 @pytest.mark.parametrize("command", ["up", "router", "camera", "tracker", "web", "ls", "echo", "hz", "sim", "info",
-                                     "convert", "record", "replay", "bench"])
+                                     "convert", "record", "replay", "bench", "track", "eval"])
 def test_every_command_has_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:
         build_parser().parse_args([command, "--help"])

@@ -1,0 +1,108 @@
+"""Tracking accuracy against ground-truth boxes (pure numpy): what `etam eval tracking` reports.
+
+Boxes are rows (t_us, id, x, y, w, h). Each truth frame is compared with the latest predicted
+frame at or before it (no older than `max_age_us`); boxes are matched one to one by IoU
+(Hungarian). Figures:
+- OP50 / OP75: share of truth boxes whose match has IoU >= 0.5 / 0.75;
+- success AUC: the mean, over IoU thresholds 0, 0.05, ..., 1, of the share matched above it;
+- precision@20: share of truth boxes whose match's centre is within 20 px;
+- false positives per second: predicted boxes matching no truth box at IoU >= 0.5, counted per
+  truth frame and weighted by the frame period, i.e. the mean number of false boxes on screen;
+- id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+@dataclass
+class TrackingScores:
+    truth_boxes: int
+    frames: int
+    duration_s: float
+    objects: int
+    op50: float
+    op75: float
+    success_auc: float
+    precision20: float
+    false_positives_per_s: float
+    id_switches: int
+    id_switches_per_object_minute: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of every box of `a` (N x 4: x, y, w, h) with every box of `b` (M x 4)."""
+    ax0, ay0, ax1, ay1 = a[:, 0:1], a[:, 1:2], a[:, 0:1] + a[:, 2:3], a[:, 1:2] + a[:, 3:4]
+    bx0, by0, bx1, by1 = b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
+    iw = np.clip(np.minimum(ax1, bx1) - np.maximum(ax0, bx0), 0, None)
+    ih = np.clip(np.minimum(ay1, by1) - np.maximum(ay0, by0), 0, None)
+    inter = iw * ih
+    union = a[:, 2:3] * a[:, 3:4] + b[:, 2] * b[:, 3] - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1), 0.0)
+
+
+def _frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Frame times and the rows of each, from rows sorted or not by time."""
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    times, starts = np.unique(rows[:, 0], return_index=True)
+    return times, np.split(rows, starts[1:]) if len(rows) else []
+
+
+def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> TrackingScores:
+    """Scores of predicted rows against truth rows (both N x 6: t_us, id, x, y, w, h)."""
+    pred, truth = np.asarray(pred, np.float64).reshape(-1, 6), np.asarray(truth, np.float64).reshape(-1, 6)
+    t_truth, truth_frames = _frames(truth)
+    t_pred, pred_frames = _frames(pred)
+    ious: list[float] = []
+    centre_err: list[float] = []
+    false_boxes = 0
+    last_match: dict[int, int] = {}
+    switches = 0
+    for t, gt in zip(t_truth, truth_frames, strict=True):
+        k = np.searchsorted(t_pred, t, side="right") - 1
+        pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
+        iou = iou_matrix(gt[:, 2:6], pr[:, 2:6]) if len(pr) else np.zeros((len(gt), 0))
+        best = np.zeros(len(gt))
+        err = np.full(len(gt), np.inf)
+        matched_pred = np.zeros(len(pr), bool)
+        if len(pr):
+            rows, cols = linear_sum_assignment(-iou)
+            for r, c in zip(rows, cols, strict=True):
+                if iou[r, c] <= 0:
+                    continue
+                best[r] = iou[r, c]
+                centre_gt = gt[r, 2:4] + gt[r, 4:6] / 2
+                centre_pr = pr[c, 2:4] + pr[c, 4:6] / 2
+                err[r] = float(np.hypot(*(centre_gt - centre_pr)))
+                if iou[r, c] >= 0.5:
+                    matched_pred[c] = True
+                    obj, ident = int(gt[r, 1]), int(pr[c, 1])
+                    if obj in last_match and last_match[obj] != ident:
+                        switches += 1
+                    last_match[obj] = ident
+        ious.extend(best.tolist())
+        centre_err.extend(err.tolist())
+        false_boxes += int((~matched_pred).sum())
+    n = len(ious)
+    iou_arr, err_arr = np.asarray(ious), np.asarray(centre_err)
+    period_s = float(np.median(np.diff(t_truth))) / 1e6 if len(t_truth) > 1 else 0.0
+    duration_s = len(t_truth) * period_s
+    objects = len(np.unique(truth[:, 1])) if len(truth) else 0
+    thresholds = np.linspace(0, 1, 21)
+    return TrackingScores(
+        truth_boxes=n, frames=len(t_truth), duration_s=duration_s, objects=objects,
+        op50=float((iou_arr >= 0.5).mean()) if n else 0.0,
+        op75=float((iou_arr >= 0.75).mean()) if n else 0.0,
+        success_auc=float(np.mean([(iou_arr > th).mean() for th in thresholds])) if n else 0.0,
+        precision20=float((err_arr <= 20).mean()) if n else 0.0,
+        false_positives_per_s=false_boxes * period_s / duration_s if duration_s else 0.0,
+        id_switches=switches,
+        id_switches_per_object_minute=switches / objects / (duration_s / 60) if objects and duration_s else 0.0,
+    )

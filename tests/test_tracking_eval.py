@@ -1,0 +1,69 @@
+"""`etam track` and `etam eval tracking`: the metrics on hand-made cases, and the commands end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.tracker.evaluation import evaluate, iou_matrix
+from tests.conftest import etam_argv
+
+
+def _truth(frames: int = 50, period_us: int = 20_000) -> np.ndarray:
+    """Two objects moving right, one row per object and frame: t_us, id, x, y, w, h."""
+    rows = [[k * period_us, obj, 10 + 2 * k + 100 * obj, 20, 20, 30] for k in range(frames) for obj in (1, 2)]
+    return np.asarray(rows, np.float64)
+
+
+def test_iou_of_identical_disjoint_and_half_shifted_boxes() -> None:
+    a = np.array([[0, 0, 10, 10]], float)
+    b = np.array([[0, 0, 10, 10], [20, 20, 5, 5], [5, 0, 10, 10]], float)
+    assert np.allclose(iou_matrix(a, b), [[1.0, 0.0, 50 / 150]])
+
+
+def test_perfect_prediction_scores_one_and_no_errors() -> None:
+    truth = _truth()
+    pred = truth.copy()
+    pred[:, 1] += 40  # ids need not be the truth's
+    s = evaluate(pred, truth)
+    assert (s.op50, s.op75, s.precision20, s.false_positives_per_s, s.id_switches) == (1.0, 1.0, 1.0, 0.0, 0)
+    assert s.success_auc == pytest.approx(20 / 21) and s.objects == 2 and s.truth_boxes == 100
+
+
+def test_misses_false_boxes_shifts_stale_frames_and_id_switches_are_counted() -> None:
+    truth = _truth()
+    pred = truth.copy()
+    pred[pred[:, 1] == 2, 2] += 10  # object 2 predicted half a box off: IoU 1/3, centre 10 px away
+    s = evaluate(pred, truth)
+    assert s.op50 == 0.5 and s.precision20 == 1.0 and s.false_positives_per_s == pytest.approx(1.0)
+    switched = truth.copy()
+    switched[(switched[:, 1] == 1) & (switched[:, 0] >= 500_000), 1] = 7  # object 1's track changes id once
+    assert evaluate(switched, truth).id_switches == 1
+    sparse = truth[truth[:, 0] % 100_000 == 0]  # predictions every 100 ms: older than the 20 ms allowed
+    assert evaluate(sparse, truth).op50 == pytest.approx(2 / 5)  # at 3 of every 5 truth frames
+    assert evaluate(np.zeros((0, 6)), truth).op50 == 0.0
+
+
+def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
+    h5, csv = tmp_path / "o.h5", tmp_path / "tracks.csv"
+    subprocess.run(etam_argv("sim", "objects", "--out", str(h5), "--duration", "4", "--seed", "3", "--json"),
+                   check=True, capture_output=True, timeout=120)
+    run = subprocess.run(etam_argv("track", str(h5), "--out", str(csv), "--json"), capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    assert summary["updates"] == 400 and summary["boxes"] > 100
+    assert csv.read_text().splitlines()[0] == "t_us,id,x,y,w,h,score"
+    run = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5), "--json"),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    scores = json.loads(run.stdout)
+    assert scores["frames"] >= 150 and scores["objects"] >= 2
+    assert scores["op50"] > 0.4 and scores["precision20"] > 0.4  # a floor: the tracker finds the objects
+    bad = subprocess.run(etam_argv("eval", "tracking", "--pred", str(h5), "--truth", str(h5)), capture_output=True,
+                         text=True, timeout=60)
+    assert bad.returncode == 2 and "not a tracks CSV" in bad.stderr and "Traceback" not in bad.stderr
