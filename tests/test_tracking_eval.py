@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.tracker.evaluation import evaluate, iou_matrix
+from services.tracker.evaluation import evaluate
 from tests.conftest import etam_argv
 
 
@@ -17,12 +17,6 @@ def _truth(frames: int = 50, period_us: int = 20_000) -> np.ndarray:
     """Two objects moving right, one row per object and frame: t_us, id, x, y, w, h."""
     rows = [[k * period_us, obj, 10 + 2 * k + 100 * obj, 20, 20, 30] for k in range(frames) for obj in (1, 2)]
     return np.asarray(rows, np.float64)
-
-
-def test_iou_of_identical_disjoint_and_half_shifted_boxes() -> None:
-    a = np.array([[0, 0, 10, 10]], float)
-    b = np.array([[0, 0, 10, 10], [20, 20, 5, 5], [5, 0, 10, 10]], float)
-    assert np.allclose(iou_matrix(a, b), [[1.0, 0.0, 50 / 150]])
 
 
 def test_perfect_prediction_scores_one_and_no_errors() -> None:

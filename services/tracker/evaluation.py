@@ -18,6 +18,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from services.tracker.objects.association import iou
+
 
 @dataclass
 class TrackingScores:
@@ -35,17 +37,6 @@ class TrackingScores:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of every box of `a` (N x 4: x, y, w, h) with every box of `b` (M x 4)."""
-    ax0, ay0, ax1, ay1 = a[:, 0:1], a[:, 1:2], a[:, 0:1] + a[:, 2:3], a[:, 1:2] + a[:, 3:4]
-    bx0, by0, bx1, by1 = b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
-    iw = np.clip(np.minimum(ax1, bx1) - np.maximum(ax0, bx0), 0, None)
-    ih = np.clip(np.minimum(ay1, by1) - np.maximum(ay0, by0), 0, None)
-    inter = iw * ih
-    union = a[:, 2:3] * a[:, 3:4] + b[:, 2] * b[:, 3] - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1), 0.0)
 
 
 def _frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -68,20 +59,20 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> T
     for t, gt in zip(t_truth, truth_frames, strict=True):
         k = np.searchsorted(t_pred, t, side="right") - 1
         pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
-        iou = iou_matrix(gt[:, 2:6], pr[:, 2:6]) if len(pr) else np.zeros((len(gt), 0))
+        overlap = iou(gt[:, 2:6], pr[:, 2:6]) if len(pr) else np.zeros((len(gt), 0))
         best = np.zeros(len(gt))
         err = np.full(len(gt), np.inf)
         matched_pred = np.zeros(len(pr), bool)
         if len(pr):
-            rows, cols = linear_sum_assignment(-iou)
+            rows, cols = linear_sum_assignment(-overlap)
             for r, c in zip(rows, cols, strict=True):
-                if iou[r, c] <= 0:
+                if overlap[r, c] <= 0:
                     continue
-                best[r] = iou[r, c]
+                best[r] = overlap[r, c]
                 centre_gt = gt[r, 2:4] + gt[r, 4:6] / 2
                 centre_pr = pr[c, 2:4] + pr[c, 4:6] / 2
                 err[r] = float(np.hypot(*(centre_gt - centre_pr)))
-                if iou[r, c] >= 0.5:
+                if overlap[r, c] >= 0.5:
                     matched_pred[c] = True
                     obj, ident = int(gt[r, 1]), int(pr[c, 1])
                     if obj in last_match and last_match[obj] != ident:
