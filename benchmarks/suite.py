@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import psutil
 
-from benchmarks import filters, playback, readers, transport, writers
+from benchmarks import filters, playback, readers, tracking, transport, writers
 
 
 def _tracker(quick: bool) -> list[dict]:
@@ -65,6 +65,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "writers": writers.run,
     "playback": playback.run,
     "tracker": _tracker,
+    "tracking": tracking.run,
     "simulator": _simulator,
 }
 
@@ -126,6 +127,11 @@ def format_results(results: dict) -> str:
                      f"{row['worst_events_per_s'] / 1e6:.1f}, best {row['best_events_per_s'] / 1e6:.1f}) over "
                      f"{row['plays']} plays of {row['file_events']} events; received {row['events']}, "
                      f"{row['seq_gaps']} sequence gaps")
+    for row in results.get("tracking", []):
+        lines.append(f"{row['stage']} seed {row['seed']!s:>4}: OP50 {row['op50']:.3f} OP75 {row['op75']:.3f} "
+                     f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
+                     f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f}"
+                     f"  ({row['method']})")
     for key in ("tracker", "simulator"):
         for row in results.get(key, []):
             extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))

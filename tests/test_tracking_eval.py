@@ -61,3 +61,13 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     bad = subprocess.run(etam_argv("eval", "tracking", "--pred", str(h5), "--truth", str(h5)), capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "not a tracks CSV" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
+    from benchmarks import tracking
+
+    rows = tracking.run(quick=True)
+    assert [r["seed"] for r in rows] == [11, 12, "mean"]
+    mean = rows[-1]
+    assert mean["op50"] == pytest.approx((rows[0]["op50"] + rows[1]["op50"]) / 2)
+    assert 0 < mean["op50"] <= 1 and mean["false_positives_per_s"] >= 0
