@@ -58,7 +58,6 @@ class McapWriter:
         self._buf = bytearray()
         self._start: int | None = None  # log times of the chunk being filled
         self._end = 0
-        self._first = self._last = 0  # log times of the file
         self.messages = 0
 
     def add_schema(self, name: str, encoding: str = "", data: bytes = b"") -> int:
@@ -78,8 +77,6 @@ class McapWriter:
     def add_message(self, channel: int, log_time: int, data: bytes, publish_time: int, sequence: int) -> None:
         if self._start is None:
             self._start = log_time
-        if not self.messages:
-            self._first = log_time
         self._end = max(self._end, log_time)
         self._buf += _MESSAGE.pack(Opcode.MESSAGE, 22 + len(data), channel, sequence & 0xFFFFFFFF, log_time,
                                    publish_time)
@@ -95,7 +92,6 @@ class McapWriter:
             records = bytes(self._buf)
             self._pending.append((self._pool.submit(_compress, records), self._start, self._end, len(records)))
             self._buf.clear()
-            self._last = max(self._last, self._end)
             self._start, self._end = None, 0
         self._write_done(wait_for=len(self._pending) - MAX_PENDING)
 
@@ -128,8 +124,9 @@ class McapWriter:
         summary_start = self._file.tell()
         stats = Statistics(message_count=self.messages, schema_count=len(self.schemas),
                            channel_count=len(self.channels), attachment_count=0, metadata_count=0,
-                           chunk_count=len(self._chunk_indexes), message_start_time=self._first,
-                           message_end_time=self._last, channel_message_counts=self._counts)
+                           chunk_count=len(self._chunk_indexes), channel_message_counts=self._counts,
+                           message_start_time=self._chunk_indexes[0].message_start_time if self.messages else 0,
+                           message_end_time=max((c.message_end_time for c in self._chunk_indexes), default=0))
         groups = [(Opcode.SCHEMA, self.schemas), (Opcode.CHANNEL, self.channels), (Opcode.STATISTICS, [stats]),
                   (Opcode.CHUNK_INDEX, self._chunk_indexes)]
         offsets = []

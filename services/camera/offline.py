@@ -37,9 +37,9 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
 
 
 def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm) -> dict[str, int]:
+    """One camera's events and ground truth into `writer`; its counts."""
     boxes, boxes_3d, poses, omega, depth_t, depth_maps = [], [], [], [], [], []
-    if source.calibration is not None:
-        writer.write_calibration(source.calibration)
+    writer.write_calibration(source.calibration)
     for since in range(0, end_us, STEP_US):
         until = min(since + STEP_US, end_us)
         writer.write(source.advance(until))

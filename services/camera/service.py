@@ -45,8 +45,8 @@ class _Camera:
 
     def info(self) -> CameraInfo:
         src, calib = self.source, self.source.calibration
-        return CameraInfo(width=src.width, height=src.height, K=src.K, source=src.name, T_body_cam=src.T_body_cam,
-                          **({"dist_model": calib.dist_model, "dist": calib.dist} if calib else {}))
+        extra = {"dist_model": calib.dist_model, "dist": calib.dist, "T_body_cam": calib.T_body_cam} if calib else {}
+        return CameraInfo(width=src.width, height=src.height, K=src.K, source=src.name, **extra)
 
     def play(self, since_us: int, until_us: int) -> None:
         """Publish the events and truth of (since_us, until_us]."""

@@ -39,8 +39,7 @@ class EventSource(Protocol):
     width: int
     height: int
     K: np.ndarray
-    calibration: Calibration | None  # with distortion, for undistortion filters
-    T_body_cam: np.ndarray | None  # where the camera sits in a rig of several, else None
+    calibration: Calibration | None  # with distortion, and the camera's place in a rig of several
     start_us: int
     done: bool
     error: FormatError | None  # a fault met in a file, after the good events before it
@@ -78,8 +77,7 @@ class SimSource:
         self.width, self.height = scene.width, scene.height
         f = scene.focal_px
         self.K = np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
-        self.T_body_cam = getattr(scene, "T_body_cam", None)
-        self.calibration = Calibration(self.K, T_body_cam=self.T_body_cam)  # an ideal pinhole
+        self.calibration = Calibration(self.K, T_body_cam=getattr(scene, "T_body_cam", None))  # an ideal pinhole
 
     def advance(self, until_us: int) -> np.ndarray:
         return self.sim.advance(until_us)
@@ -144,7 +142,6 @@ class FileSource:
         self.width, self.height = recording.width, recording.height
         self.K = recording.K_or_default()
         self.calibration = recording.calibration
-        self.T_body_cam = recording.calibration.T_body_cam if recording.calibration else None
         self._chunks = read_ahead(recording.chunks())
         self._pending = np.empty(0, EVENT_DTYPE)
         self._shift_us = 0
@@ -153,18 +150,32 @@ class FileSource:
         self.error: FormatError | None = None  # a fault in the file, met after the good events before it
         self._fill()
         self.start_us = int(self._pending["t"][0]) if len(self._pending) else 0
-        boxes, solid = recording.truth.boxes, recording.truth.boxes_3d
+        # ground truth and IMU are small: read once, ordered by time (us) for lookups by span
+        truth = recording.truth
+        boxes, solid = truth.boxes, truth.boxes_3d
         order = np.argsort(boxes[:, 0], kind="stable") if boxes is not None else None
         self._truth_rows = boxes[order] if boxes is not None else None
         self._truth_3d = solid[order] if solid is not None and boxes is not None and len(solid) == len(boxes) else None
-        self._imu = recording.imu()  # IMU streams are small: read once
+        pose_t = np.round(truth.poses[:, 0] * 1e6).astype(np.int64) if truth.poses is not None else None
+        self._pose_order = np.argsort(pose_t, kind="stable") if pose_t is not None else None
+        self._pose_t = pose_t[self._pose_order] if pose_t is not None else None
+        self._depth_order = np.argsort(truth.depth_t, kind="stable") if truth.depth_t is not None else None
+        self._depth_t = truth.depth_t[self._depth_order] if truth.depth_t is not None else None
+        imu = recording.imu()
+        order = np.argsort(imu[0], kind="stable") if imu is not None else None
+        self._imu = tuple(a[order] for a in imu) if imu is not None else None
+
+    def _span(self, t: np.ndarray, since_us: int, until_us: int) -> slice:
+        """The entries of sorted file times `t` in (since_us, until_us] of the lap being played."""
+        lo, hi = np.searchsorted(t, (since_us - self._shift_us, until_us - self._shift_us), side="right")
+        return slice(int(lo), int(hi))
 
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
         if self._imu is None:
             return None
         t, gyro, accel = self._imu
-        sel = (t + self._shift_us > since_us) & (t + self._shift_us <= until_us)
-        return (t[sel] + self._shift_us, gyro[sel], accel[sel]) if sel.any() else None
+        sel = self._span(t, since_us, until_us)
+        return (t[sel] + self._shift_us, gyro[sel], accel[sel]) if sel.stop > sel.start else None
 
     def _fill(self) -> bool:
         """Load the next chunk into the pending buffer; False at the end of the file or at a fault."""
@@ -206,20 +217,20 @@ class FileSource:
         return events.concat(parts)
 
     def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
-        rows = self.recording.truth.poses  # TUM: t_s, p, q
-        if rows is None:
+        if self._pose_t is None:
             return []
-        t = np.round(rows[:, 0] * 1e6).astype(np.int64) + self._shift_us
-        sel = (t > since_us) & (t <= until_us)
-        return [(int(ti), r[1:4], r[4:8], None) for ti, r in zip(t[sel], rows[sel], strict=True)]
+        rows = self.recording.truth.poses  # TUM: t_s, p, q
+        sel = self._span(self._pose_t, since_us, until_us)
+        return [(int(t) + self._shift_us, rows[i, 1:4], rows[i, 4:8], None)
+                for t, i in zip(self._pose_t[sel], self._pose_order[sel], strict=True)]
 
     def depths(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray]]:
-        truth = self.recording.truth
-        if truth.depth_t is None or truth.depth_maps is None:
+        maps = self.recording.truth.depth_maps
+        if self._depth_t is None or maps is None:
             return []
-        t = truth.depth_t + self._shift_us
-        return [(int(t[i]), np.asarray(truth.depth_maps[i], np.float32))
-                for i in np.flatnonzero((t > since_us) & (t <= until_us))]
+        sel = self._span(self._depth_t, since_us, until_us)
+        return [(int(t) + self._shift_us, np.asarray(maps[i], np.float32))
+                for t, i in zip(self._depth_t[sel], self._depth_order[sel], strict=True)]
 
     def loaded_until_us(self) -> int | None:
         """Sensor time up to which every event is already read, so advancing to it costs no copy: just
@@ -229,14 +240,13 @@ class FileSource:
     def truth(self, since_us: int, until_us: int) -> list[TruthBoxes]:
         if self._truth_rows is None:
             return []
-        rows = self._truth_rows
-        t = rows[:, 0] + self._shift_us
-        mask = (t > since_us) & (t <= until_us)
-        sel, solid = rows[mask], self._truth_3d[mask] if self._truth_3d is not None else None
+        sel = self._span(self._truth_rows[:, 0], since_us, until_us)
+        rows = self._truth_rows[sel]
+        solid = self._truth_3d[sel] if self._truth_3d is not None else None
         out = []
-        for tu in np.unique(sel[:, 0]):
-            at = sel[:, 0] == tu
-            out.append((int(tu) + self._shift_us, sel[at, 1].astype(np.int32), sel[at, 2:6],
+        for tu in np.unique(rows[:, 0]):
+            at = rows[:, 0] == tu
+            out.append((int(tu) + self._shift_us, rows[at, 1].astype(np.int32), rows[at, 2:6],
                         solid[at] if solid is not None else None))
         return out
 
