@@ -69,17 +69,49 @@ def test_iou() -> None:
     assert np.allclose(iou(a, b), [[1.0, 50 / 150, 0.0]])
 
 
-def test_association_keeps_ids_goes_lost_and_refinds() -> None:
-    mot = MultiObjectTracker()
-    box = np.array([[10, 10, 20, 20]], np.float32)
-    for i in range(5):
-        tracks = mot.update(i * 10_000, box + [2 * i, 0, 0, 0])
+def _follow(mot: MultiObjectTracker, t0: int, box: list[float], step: list[float], n: int) -> list:
+    tracks = []
+    for i in range(n):
+        tracks = mot.update(t0 + i * 10_000, np.array([box], np.float32) + np.array(step, np.float32) * i)
+    return tracks
+
+
+def test_association_confirms_then_holds_a_stopped_target() -> None:
+    mot = MultiObjectTracker(width=346, height=260)
+    tracks = _follow(mot, 0, [100, 100, 20, 20], [2, 0, 0, 0], 5)
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
     assert tracks[0].vel[0] == pytest.approx(200, rel=0.3)  # 2 px per 10 ms
-    tracks = mot.update(200_000, np.zeros((0, 4), np.float32))
-    assert tracks[0].state == LOST
-    tracks = mot.update(210_000, box + [45, 0, 0, 0])  # near where it would have drifted
+    for t in range(50_000, 1_000_000, 10_000):  # no events: the target stopped
+        tracks = mot.update(t, np.zeros((0, 4), np.float32))
+    assert tracks[0].state == TRACKED and abs(tracks[0].box[0] - 108) < 6  # held, not drifting away
+    tracks = mot.update(2_200_000, np.zeros((0, 4), np.float32))
+    assert tracks[0].state == LOST  # held no longer than hold_us
+    tracks = mot.update(2_210_000, np.array([[115, 100, 20, 20]], np.float32))  # back near where it was
     assert tracks[0].ident == 1 and tracks[0].hits == 6
+
+
+def test_association_lets_go_of_a_target_leaving_the_image() -> None:
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [330, 100, 16, 20], [0, 0, 0, 0], 5)
+    tracks = mot.update(60_000, np.zeros((0, 4), np.float32))
+    assert tracks[0].state == LOST
+
+
+def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(40):  # a big target, and a small piece of it now and then
+        boxes = [[50 + i, 50, 60, 60]] + ([[60 + i, 60, 10, 10]] if i % 3 == 0 else [])
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    assert [t.ident for t in tracks] == [1]
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(60):  # two targets meet head on and pass: one blob while they overlap
+        a, b = [40 + 3 * i, 100, 30, 30], [250 - 3 * i, 100, 30, 30]
+        boxes = [a, b] if abs(a[0] - b[0]) > 35 else [[min(a[0], b[0]), 100, abs(a[0] - b[0]) + 30, 30]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    by_id = {t.ident: t for t in tracks if t.state == TRACKED}
+    assert sorted(by_id) == [1, 2]
+    assert by_id[1].box[0] > by_id[2].box[0]  # each id went on with its own target
+    assert by_id[1].box[2] == pytest.approx(30, abs=3)  # and kept its size through the merge
 
 
 def test_tracker_follows_simulated_objects() -> None:

@@ -9,6 +9,7 @@ import numpy as np
 from services.tracker.objects.accumulator import DecayedAccumulator
 from services.tracker.objects.association import AssociationParams, MultiObjectTracker
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
+from services.tracker.objects.meanshift import mean_shift
 
 
 @dataclass
@@ -38,7 +39,7 @@ class ObjectTracker:
         self.params = params or TrackerParams()
         self.width, self.height = width, height
         self.accumulator = DecayedAccumulator(width, height, self.params.tau_us)
-        self.association = MultiObjectTracker(self.params.association)
+        self.association = MultiObjectTracker(self.params.association, width, height)
 
     def accept(self, events: np.ndarray) -> None:
         self.accumulator.accept(events)
@@ -46,11 +47,11 @@ class ObjectTracker:
     def generate(self, t_us: int) -> TrackSet:
         image = self.accumulator.generate(t_us)
         boxes, _mass = detect_clusters(image, self.params.clusters)
-        tracks = self.association.update(t_us, boxes)
+        tracks = self.association.update(t_us, boxes, refine=lambda box: mean_shift(image, box))
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
-            boxes=np.array([tr.predict(t_us) if tr.state == 2 else tr.box for tr in tracks], np.float32).reshape(-1, 4),
+            boxes=np.array([tr.box for tr in tracks], np.float32).reshape(-1, 4),
             scores=np.array([tr.score for tr in tracks], np.float32),
             vels=np.array([tr.vel for tr in tracks], np.float32).reshape(-1, 2),
             states=np.array([tr.state for tr in tracks], np.uint8),
