@@ -1,23 +1,71 @@
-"""Object tracker: decayed accumulation -> moving clusters -> association with ids (pure numpy)."""
+"""Object tracker: event frame -> detections -> association with ids (pure numpy).
+
+Every stage has the variants of the seeds, chosen by `TrackerParams`:
+- frames: `decay` (a decayed accumulation image, seeds 002/003) or `adaptive` (seed 002's window
+  that moves between time-based and count-based by frame quality);
+- detection: `contour` (occupancy clusters, seed 003's contour method), `camshift` (seed 003's
+  Canny edges + CamShift per track, clusters for new targets) or `corner` (seed 003's feature
+  method: corner clusters);
+- key-event sampling (seed 004) thins an update's events once they exceed `max_events`.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
+from services import events as ev_ops
 from services.tracker.objects.accumulator import DecayedAccumulator
-from services.tracker.objects.association import AssociationParams, MultiObjectTracker
+from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
+from services.tracker.objects.corners import CornerParams, detect_corner_clusters
+from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
 from services.tracker.objects.meanshift import mean_shift
+from services.tracker.objects.sampling import key_events
+
+FRAMES = ("decay", "adaptive")
+DETECTORS = ("contour", "camshift", "corner")
 
 
 @dataclass
 class TrackerParams:
+    frames: str = "decay"
+    detector: str = "contour"
     tau_us: float = 30_000.0
     update_us: int = 10_000  # a tracking update every 10 ms of sensor time
+    max_events: int = 0  # more events than this in one update are thinned to key events (0: never)
+    sample_cell_px: int = 2
     clusters: ClusterParams = field(default_factory=ClusterParams)
+    corners: CornerParams = field(default_factory=CornerParams)
+    adaptive: AdaptiveParams = field(default_factory=AdaptiveParams)
     association: AssociationParams = field(default_factory=AssociationParams)
+
+    def __post_init__(self) -> None:
+        if self.frames not in FRAMES:
+            raise ValueError(f"tracker frames {self.frames!r} is not one of {', '.join(FRAMES)}")
+        if self.detector not in DETECTORS:
+            raise ValueError(f"tracker detector {self.detector!r} is not one of {', '.join(DETECTORS)}")
+
+
+# the methods compared in `etam bench tracking`; the first is the default
+METHODS: dict[str, TrackerParams] = {
+    "contour": TrackerParams(),
+    "adaptive": TrackerParams(frames="adaptive"),
+    "camshift": TrackerParams(detector="camshift"),
+    "corner": TrackerParams(detector="corner"),
+    "keyevents": TrackerParams(max_events=1),
+}
+
+
+def method_params(name: str) -> TrackerParams:
+    """A fresh copy of the parameters of a named method; ValueError naming the known ones."""
+    if name not in METHODS:
+        raise ValueError(f"tracking method {name!r} is not one of {', '.join(METHODS)}")
+    base = METHODS[name]
+    return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
+                   adaptive=replace(base.adaptive), association=replace(base.association))
 
 
 @dataclass
@@ -38,15 +86,26 @@ class ObjectTracker:
     def __init__(self, width: int, height: int, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
         self.width, self.height = width, height
-        self.accumulator = DecayedAccumulator(width, height, self.params.tau_us)
+        if self.params.frames == "adaptive":
+            self.frames: DecayedAccumulator | AdaptiveWindow = AdaptiveWindow(width, height, self.params.adaptive)
+        else:
+            self.frames = DecayedAccumulator(width, height, self.params.tau_us)
         self.association = MultiObjectTracker(self.params.association, width, height)
+        self._pending = 0
+        self._sampled: list[np.ndarray] = []
 
     def accept(self, events: np.ndarray) -> None:
-        self.accumulator.accept(events)
+        if self.params.max_events:
+            self._sampled.append(events)
+            self._pending += len(events)
+        else:
+            self.frames.accept(events)
 
     def generate(self, t_us: int) -> TrackSet:
-        image = self.accumulator.generate(t_us)
-        boxes, _mass = detect_clusters(image, self.params.clusters)
+        if self._sampled:
+            self._accept_sampled()
+        image = self.frames.generate(t_us)
+        boxes = self._detect(image, t_us)
         tracks = self.association.update(t_us, boxes, refine=lambda box: mean_shift(image, box))
         return TrackSet(
             t_us=t_us,
@@ -57,6 +116,49 @@ class ObjectTracker:
             states=np.array([tr.state for tr in tracks], np.uint8),
         )
 
+    def _accept_sampled(self) -> None:
+        """This update's events, thinned to key events (each weighted by the events of its cell)
+        when there are more than `max_events` of them."""
+        events = ev_ops.concat(self._sampled) if len(self._sampled) > 1 else self._sampled[0]
+        self._sampled, self._pending = [], 0
+        if len(events) <= self.params.max_events or not isinstance(self.frames, DecayedAccumulator):
+            self.frames.accept(events)
+            return
+        idx, weight = key_events(events, self.width, self.height, self.params.sample_cell_px)
+        self.frames.accept(ev_ops.take(events, idx), weight)
+
+    def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
+        p = self.params
+        if p.detector == "corner":
+            return detect_corner_clusters(image, p.corners)
+        boxes, _mass = detect_clusters(image, p.clusters)
+        if p.detector == "camshift":
+            return self._camshift(image, boxes, t_us)
+        return boxes
+
+    def _camshift(self, image: np.ndarray, clusters: np.ndarray, t_us: int) -> np.ndarray:
+        """Seed 003's contour method: CamShift on the Canny edges of the frame, from each live
+        track's predicted box; clusters no CamShift box covers are new targets."""
+        edges = cv2.Canny(np.clip(image * 85.0, 0, 255).astype(np.uint8), 50, 150)
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 1.0)
+        found = []
+        for tr in self.association.tracks:
+            if tr.state == LOST:
+                continue
+            x, y, w, h = (int(round(v)) for v in tr.predict(t_us))
+            x, y = min(max(x, 0), self.width - 1), min(max(y, 0), self.height - 1)
+            w, h = max(min(w, self.width - x), 1), max(min(h, self.height - y), 1)
+            if edges[y:y + h, x:x + w].any():
+                _, window = cv2.CamShift(edges, (x, y, w, h), criteria)
+                if window[2] > 0 and window[3] > 0:
+                    found.append(window)
+        shifted = np.asarray(found, np.float32).reshape(-1, 4)
+        if len(shifted) and len(clusters):
+            covered = (intersection(shifted, clusters) / np.maximum(clusters[:, 2] * clusters[:, 3], 1)).max(axis=0)
+            clusters = clusters[covered < 0.5]
+        return np.concatenate([shifted, clusters])
+
     def reset(self) -> None:
-        self.accumulator.reset()
+        self.frames.reset()
         self.association.reset()
+        self._sampled, self._pending = [], 0
