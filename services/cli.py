@@ -75,9 +75,14 @@ def _cmd_camera(args: argparse.Namespace) -> int:
 
 
 def _cmd_tracker(args: argparse.Namespace) -> int:
-    from services.tracker.service import TrackerService
+    from services.tracker.objects.tracker import method_params
+    from services.tracker.service import ObjectSizes, TrackerService
 
-    return TrackerService(_service_options(args, "objects")).run()
+    try:
+        params, sizes = method_params(args.method), ObjectSizes.parse(args.object_size or [])
+    except ValueError as exc:
+        raise config.ConfigError(str(exc)) from None
+    return TrackerService(_service_options(args, "objects"), params, sizes=sizes).run()
 
 
 def _cmd_web(args: argparse.Namespace) -> int:
@@ -189,7 +194,13 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     if not Path(args.input).exists():
         raise config.ConfigError(f"{args.input}: no such file")
-    summary = track(Path(args.input), Path(args.out), progress=not args.json)
+    from services.tracker.objects.tracker import method_params
+
+    try:
+        params = method_params(args.method)
+    except ValueError as exc:
+        raise config.ConfigError(str(exc)) from None
+    summary = track(Path(args.input), Path(args.out), params, progress=not args.json)
     print(json.dumps(summary) if args.json else f"wrote {summary['boxes']} boxes of {summary['track_ids']} tracks "
           f"({summary['updates']} updates, {summary['events']} events) to {args.out}")
     return 0
@@ -244,6 +255,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+METHOD_CHOICES = ("contour", "adaptive", "camshift", "corner", "keyevents")
+METHOD_HELP = ("tracking method: contour (default; decayed image, occupancy clusters), adaptive (time/count "
+               "window chosen by frame quality), camshift (CamShift on edges), corner (corner clusters), "
+               "keyevents (contour on key events)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="etam", description="ETAM: event-based tracking and mapping.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -287,6 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("tracker", help="run the object tracker service alone")
     _zenoh_flags(p)
     p.add_argument("--name", help="tracker name in keys (default objects)")
+    p.add_argument("--method", default="contour", choices=METHOD_CHOICES, help=METHOD_HELP)
+    p.add_argument("--object-size", action="append", metavar="[ID=]M",
+                   help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
+                        "M for every target, ID=M for one track id; repeatable")
     p.set_defaults(func=_cmd_tracker)
 
     p = sub.add_parser("web", help="run the dashboard service alone")
@@ -329,6 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="track moving objects in a recording into a CSV (t_us,id,x,y,w,h,score)")
     p.add_argument("input", help="any readable event file")
     p.add_argument("--out", default="tracks.csv", help="tracks CSV to write (default tracks.csv)")
+    p.add_argument("--method", default="contour", choices=METHOD_CHOICES, help=METHOD_HELP)
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 

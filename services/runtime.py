@@ -263,6 +263,22 @@ class Service:
         self._inputs.append(inp)
         return inp
 
+    async def query(self, keyexpr: str, expect: type[Message], timeout_s: float = 2.0) -> list[tuple[str, Message]]:
+        """Ask every queryable on `keyexpr` (off the loop); the replies that decode, with their keys."""
+
+        def ask() -> list[tuple[str, Message]]:
+            out = []
+            for reply in self._session().get(keyexpr, timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                try:
+                    out.append((str(reply.ok.key_expr), decode(reply.ok.payload.to_bytes(), expect)))
+                except MessageError as exc:
+                    log.warning("ignoring a reply on %s: %s", reply.ok.key_expr, exc)
+            return out
+
+        return await asyncio.get_running_loop().run_in_executor(None, ask)
+
     def serve(self, topic_or_key: str, handler: Callable[[Message | None], Message]) -> None:
         """Answer queries on `topic` with ``handler(decoded query payload or None)``, run on the loop."""
         keyexpr = self._full_key(topic_or_key)

@@ -1,16 +1,51 @@
-"""The tracker service: object tracks from the camera's event packets (``tracker/objects/tracks``)."""
+"""The tracker service: object tracks from the camera's event packets (``tracker/objects/tracks``).
+
+Each track gets a 3D position (`xyz`, camera frame) when it can: from the latest depth image of the
+same camera (the mapper's, or a simulator's truth) where the box holds valid depth, else from a
+configured object width and the camera's intrinsics (Z = fx * size / pixels).
+"""
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import numpy as np
 
 from services import keys
-from services.messages import Command, EventPacket, Reply, Tracks
+from services.messages import CameraInfo, Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
 from services.runtime import Service, ServiceOptions
-from services.tracker.objects.tracker import ObjectTracker, TrackerParams
+from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
+from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class ObjectSizes:
+    """Known metric widths of targets: one for every track, and per track id."""
+
+    default_m: float | None = None
+    per_id: dict[int, float] = field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, items: list[str]) -> ObjectSizes:
+        """From `M` (every target) and `ID=M` items; ValueError naming a bad one."""
+        sizes = cls()
+        for item in items:
+            ident, _, value = item.rpartition("=")
+            try:
+                metres = float(value)
+                if not metres > 0:
+                    raise ValueError
+                if ident:
+                    sizes.per_id[int(ident)] = metres
+                else:
+                    sizes.default_m = metres
+            except ValueError:
+                raise ValueError(f"--object-size {item!r}: expected M or ID=M with M > 0 metres") from None
+        return sizes
 
 
 @dataclass
@@ -27,16 +62,24 @@ class TrackerService(Service):
 
     kind = "tracker"
 
-    def __init__(self, options: ServiceOptions, params: TrackerParams | None = None, cam: str = "*") -> None:
+    def __init__(self, options: ServiceOptions, params: TrackerParams | None = None, cam: str = "*",
+                 sizes: ObjectSizes | None = None) -> None:
         super().__init__(options)
         self.tracker_params = params or TrackerParams()
         self.cam = cam
+        self.sizes = sizes or ObjectSizes()
         self.streams: dict[str, _Stream] = {}
+        self.K: dict[str, np.ndarray] = {}  # camera name -> intrinsics
+        self.depth: dict[str, np.ndarray] = {}  # camera name -> latest depth image
         self.params = {"update_us": self.tracker_params.update_us,
                        "density": self.tracker_params.clusters.density,
-                       "min_area_px": self.tracker_params.clusters.min_area_px}
+                       "min_area_px": self.tracker_params.clusters.min_area_px,
+                       "frames": self.tracker_params.frames, "detector": self.tracker_params.detector}
 
     async def main(self) -> None:
+        await asyncio.gather(self._track(), self._infos(), self._depths())
+
+    async def _track(self) -> None:
         out = self.publisher("tracks")
         events = self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=1024)
         async for key, msg in events:
@@ -49,11 +92,65 @@ class TrackerService(Service):
             if msg.stamp < stream.next_update_us:
                 continue
             tracks = stream.tracker.generate(msg.stamp)
+            xyz = self._positions(_camera(key), tracks, (msg.height, msg.width))
             out.publish(Tracks(t=tracks.t_us, stamp=tracks.t_us, id=tracks.ids, box=tracks.boxes,
-                               score=tracks.scores, vel=tracks.vels, state=tracks.states))
+                               score=tracks.scores, vel=tracks.vels, state=tracks.states, xyz=xyz,
+                               size_m=None if xyz is None else self._sizes(tracks).astype("<f4")))
             # the next update on the update grid, skipping any slots this packet already passed
             step = int(self.params["update_us"])
             stream.next_update_us = max(stream.next_update_us + step, msg.stamp - msg.stamp % step + step)
+
+    async def _infos(self) -> None:
+        """Intrinsics of every camera: kept up to date from its publications, and asked for (every
+        camera answers) four times a second while a camera sending events is not known yet."""
+        infos = keys.key(self.rig, "camera", self.cam, "info")
+        updates = self.subscribe(infos, CameraInfo, policy="latest")
+
+        async def ask() -> None:
+            while True:
+                if any(_camera(key) not in self.K for key in self.streams) or not self.streams:
+                    for key, msg in await self.query(infos, CameraInfo, timeout_s=0.5):
+                        self._on_info(key, msg)
+                await asyncio.sleep(0.25)
+
+        asker = asyncio.ensure_future(ask())
+        try:
+            async for key, msg in updates:
+                self._on_info(key, msg)
+        finally:
+            asker.cancel()
+
+    def _on_info(self, key: str, msg: object) -> None:
+        assert isinstance(msg, CameraInfo)
+        self.K[_camera(key)] = np.asarray(msg.K, np.float64).reshape(3, 3)
+
+    async def _depths(self) -> None:
+        async for key, msg in self.subscribe(f"{keys.ROOT}/{self.rig}/**/depth", Image, policy="latest"):
+            assert isinstance(msg, Image)
+            try:
+                # a camera's own (truth) depth is its; another service's (the mapper's) fits any camera of its size
+                parsed = keys.parse(key)
+                cam = parsed[2] if parsed and parsed[1] == "camera" else "*"
+                self.depth[cam] = image_to_array(msg).astype(np.float32, copy=False)
+            except (MessageError, ValueError) as exc:
+                log.warning("ignoring depth image on %s: %s", key, exc)
+
+    def _sizes(self, tracks: TrackSet) -> np.ndarray:
+        return sizes_for(tracks.ids, self.sizes.default_m, self.sizes.per_id)
+
+    def _positions(self, cam: str, tracks: TrackSet, shape: tuple[int, int]) -> np.ndarray | None:
+        """xyz per track: from depth where the box has some, else from its known width; None when
+        neither a depth image nor any width is known, or the intrinsics are not."""
+        K = self.K.get(cam)
+        depth = self.depth.get(cam, self.depth.get("*"))
+        if K is None or (depth is None and self.sizes.default_m is None and not self.sizes.per_id):
+            return None
+        xyz = xyz_from_size(tracks.boxes, self._sizes(tracks), K)
+        if depth is not None and depth.shape == shape:
+            from_depth = xyz_from_depth(tracks.boxes, depth, K)
+            known = np.isfinite(from_depth[:, 2])
+            xyz[known] = from_depth[known]
+        return xyz.astype("<f4")
 
     def _stream_for(self, key: str, msg: EventPacket) -> _Stream:
         """The stream of `key`, made anew for a new camera, a new sensor size, or time going back
@@ -68,7 +165,7 @@ class TrackerService(Service):
         if stream is not None:
             log.info("restarting tracking of %s: its time or sensor size changed", key)
         else:
-            log.info("tracking %s (%dx%d)", key, msg.width, msg.height)
+            log.info("tracking %s (%dx%d, %s frames, %s detector)", key, msg.width, msg.height, p.frames, p.detector)
         stream = _Stream(ObjectTracker(msg.width, msg.height, p), msg.stamp, msg.stamp)
         self.streams[key] = stream
         return stream
@@ -79,3 +176,9 @@ class TrackerService(Service):
                 stream.tracker.reset()
             return Reply(ok=True)
         return None
+
+
+def _camera(key: str) -> str:
+    """The camera name of a camera key (etam/<rig>/camera/<name>/...)."""
+    parsed = keys.parse(key)
+    return parsed[2] if parsed else ""

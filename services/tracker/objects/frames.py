@@ -1,9 +1,10 @@
 """Adaptive event-frame formation (seed 002): the window moves between time-based and count-based.
 
-Each update forms two candidate frames, the events of the last `dt_us` and the last `n` events,
-scores both, keeps the better, and carries its extent over to the other rule: a better time window
-sets `n` to the events it held, a better count window sets `dt_us` to the time it spanned. A slow
-target thus gets a longer window and a fast one a shorter one, without a hand-set constant.
+Each update forms candidate frames, the events of the last `dt_us` and the last `n` events (plus a
+time window 0.7x and 1.4x as long, so the window can move even when the event rate is steady),
+scores them, keeps the best, and carries its extent over to both rules: `n` becomes the events it
+held and `dt_us` the time it spanned. A slow target thus gets a longer window and a fast one a
+shorter one, without a hand-set constant.
 
 Seed 002 scores frames with a small learned network; here the score is hand-made and cheap:
 *structure* (the share of event pixels with enough active neighbours, low for a too-short, noisy
@@ -69,16 +70,20 @@ class AdaptiveWindow:
         if first:
             self._buffer = self._buffer[first:]
         buf = self._buffer
-        by_time = buf[int(np.searchsorted(buf["t"], t_us - self.dt_us, side="left")):]
-        n = max(self.n if self.n is not None else len(by_time), p.min_events)
-        by_count = buf[max(len(buf) - n, 0):]
-        time_img, count_img = self._image(by_time), self._image(by_count)
-        if frame_quality(time_img) >= frame_quality(count_img):
-            self.chosen, self.n, self.image = "time", max(len(by_time), p.min_events), time_img
-        else:
-            span = t_us - int(by_count["t"][0]) if len(by_count) else self.dt_us
-            self.chosen, self.image = "count", count_img
-            self.dt_us = int(np.clip(span, p.min_dt_us, p.max_dt_us))
+        n = max(self.n if self.n is not None else 0, p.min_events)
+        # seed 002's two candidates, plus a shorter and a longer time window so the window can move
+        # when the event rate does not
+        candidates = [buf[max(len(buf) - n, 0):]]
+        for dt in (self.dt_us, self.dt_us * 0.7, self.dt_us * 1.4):
+            dt = float(np.clip(dt, p.min_dt_us, p.max_dt_us))
+            candidates.append(buf[int(np.searchsorted(buf["t"], t_us - dt, side="left")):])
+        images = [self._image(c) for c in candidates]
+        best = int(np.argmax([frame_quality(img) for img in images]))
+        chosen = candidates[best]
+        self.chosen, self.image = ("count" if best == 0 else "time"), images[best]
+        self.n = max(len(chosen), p.min_events)
+        span = t_us - int(chosen["t"][0]) if len(chosen) else self.dt_us
+        self.dt_us = int(np.clip(span, p.min_dt_us, p.max_dt_us))
         return self.image
 
     def _image(self, events: np.ndarray) -> np.ndarray:
