@@ -6,37 +6,9 @@ import platform
 import time
 from collections.abc import Callable
 
-import numpy as np
 import psutil
 
 from benchmarks import filters, playback, readers, tracking, transport, writers
-
-
-def _tracker(quick: bool) -> list[dict]:
-    """The object tracker alone on simulated events: events/s it digests and ms per update."""
-    from services.camera.simulator import EventSimulator, ObjectsScene
-    from services.tracker.objects.tracker import ObjectTracker
-
-    scene = ObjectsScene()
-    sim = EventSimulator(scene)
-    duration_us = 1_000_000 if quick else 4_000_000
-    packets = []
-    for t in range(10_000, duration_us + 1, 10_000):
-        packets.append((t, sim.advance(t)))
-    tracker = ObjectTracker(scene.width, scene.height)
-    n_events = sum(len(ev) for _, ev in packets)
-    per_update = []
-    t0 = time.perf_counter()
-    for t, ev in packets:
-        t1 = time.perf_counter()
-        tracker.accept(ev)
-        tracker.generate(t)
-        per_update.append((time.perf_counter() - t1) * 1e3)
-    wall = time.perf_counter() - t0
-    return [{"stage": "tracker.objects", "events": n_events, "events_per_s": n_events / wall,
-             "update_ms_p50": float(np.percentile(per_update, 50)),
-             "update_ms_p99": float(np.percentile(per_update, 99)),
-             "realtime_factor": duration_us / 1e6 / wall}]
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -64,7 +36,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "filters": filters.run,
     "writers": writers.run,
     "playback": playback.run,
-    "tracker": _tracker,
+    "tracker": tracking.speed,
     "tracking": tracking.run,
     "simulator": _simulator,
 }

@@ -1,6 +1,9 @@
 """Moving clusters in a decayed event image (seed 003's contour method): local occupancy threshold,
 closing, connected components, and a tight box around each component's recent events.
 
+Thresholding, closing and labelling run on a grid of small cells rather than on every pixel: the
+same regions at a sixteenth of the work, which keeps an update well under a millisecond.
+
 The threshold is on occupancy (the share of pixels with a recent event), not on counts, so a hot
 or flickering pixel weighs no more than one event and sparse, slow objects still form one region.
 The region found that way is wider than the object by the smoothing window and trails behind it, so
@@ -19,43 +22,61 @@ import numpy as np
 
 @dataclass
 class ClusterParams:
-    density: float = 0.08  # share of pixels with a recent event, over `window_px` squares
-    window_px: int = 9
-    close_px: int = 9
+    density: float = 0.08  # share of pixels with a recent event, over `window_cells` squares of cells
+    cell_px: int = 4  # occupancy is thresholded, closed and labelled on a grid of cells this size
+    window_cells: int = 3
+    close_cells: int = 3
     min_area_px: int = 60
+    active: float = 0.05  # decayed weight of a pixel counted as occupied (an event ~ 3 tau ago)
     recent: float = 0.35  # decayed weight of a pixel counted in the box (one event ~ 1 tau ago)
     trim: float = 0.01  # share of a cluster's recent pixels left outside its box on each side
 
 
-def detect_clusters(image: np.ndarray, params: ClusterParams) -> tuple[np.ndarray, np.ndarray]:
-    """Boxes (N x 4: x, y, w, h) and masses (decayed event count) of the moving clusters in `image`."""
-    density = cv2.blur(np.minimum(image, 1.0), (params.window_px, params.window_px))
+def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
+    """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
+    c = params.cell_px
+    occupancy = _cell_occupancy(image, c, np.float32(params.active))
+    density = cv2.blur(occupancy, (params.window_cells, params.window_cells))
     mask = (density > params.density).astype(np.uint8)
-    if params.close_px > 1:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_px, params.close_px))
+    if params.close_cells > 1:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_cells, params.close_cells))
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= params.min_area_px) + 1
-    if not len(keep):
-        return np.zeros((0, 4), np.float32), np.zeros(0, np.float32)
-    boxes = _trimmed_boxes(labels, image, n, np.float32(params.recent), params.trim)[keep]
-    mass = np.bincount(labels.ravel(), image.ravel(), n)[keep].astype(np.float32)
-    ok = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
-    return boxes[ok], mass[ok]
+    big = np.zeros(n, np.bool_)
+    big[1:] = stats[1:, cv2.CC_STAT_AREA] * c * c >= params.min_area_px
+    if not big.any():
+        return np.zeros((0, 4), np.float32)
+    boxes = _trimmed_boxes(labels, big, c, image, n, np.float32(params.recent), params.trim)[big]
+    return boxes[(boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
 
 
 @numba.njit(cache=True, nogil=True)
-def _trimmed_boxes(labels, image, n, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
-    """Per label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h)."""
-    h, w = labels.shape
+def _cell_occupancy(image, cell, active):  # noqa: ANN001, ANN202 - numba kernel
+    """Share of the pixels of each `cell` x `cell` square whose weight reaches `active`."""
+    h, w = image.shape
+    rows, cols = (h + cell - 1) // cell, (w + cell - 1) // cell
+    out = np.zeros((rows, cols), np.float32)
+    for y in range(h):
+        for x in range(w):
+            if image[y, x] >= active:
+                out[y // cell, x // cell] += 1.0
+    out *= 1.0 / (cell * cell)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _trimmed_boxes(labels, keep, cell, image, n, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+    """Per kept cell label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h)."""
+    h, w = image.shape
     col = np.zeros((n, w), np.int32)
     row = np.zeros((n, h), np.int32)
     for y in range(h):
         for x in range(w):
-            lab = labels[y, x]
-            if lab and image[y, x] >= recent:
-                col[lab, x] += 1
-                row[lab, y] += 1
+            if image[y, x] >= recent:
+                lab = labels[y // cell, x // cell]
+                if lab and keep[lab]:
+                    col[lab, x] += 1
+                    row[lab, y] += 1
     out = np.zeros((n, 4), np.float32)
     for lab in range(1, n):
         total = col[lab].sum()

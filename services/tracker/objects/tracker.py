@@ -131,7 +131,7 @@ class ObjectTracker:
         p = self.params
         if p.detector == "corner":
             return detect_corner_clusters(image, p.corners)
-        boxes, _mass = detect_clusters(image, p.clusters)
+        boxes = detect_clusters(image, p.clusters)
         if p.detector == "camshift":
             return self._camshift(image, boxes, t_us)
         return boxes
