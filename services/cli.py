@@ -201,6 +201,11 @@ def _cmd_track(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise config.ConfigError(str(exc)) from None
     summary = track(Path(args.input), Path(args.out), params, progress=not args.json)
+    if args.snapshots:
+        from services.tracker.offline import read_tracks, snapshots
+
+        snapshots(Path(args.input), read_tracks(Path(args.out)), Path(args.snapshots))
+        summary["snapshots"] = args.snapshots
     print(json.dumps(summary) if args.json else f"wrote {summary['boxes']} boxes of {summary['track_ids']} tracks "
           f"({summary['updates']} updates, {summary['events']} events) to {args.out}")
     return 0
@@ -351,6 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="any readable event file")
     p.add_argument("--out", default="tracks.csv", help="tracks CSV to write (default tracks.csv)")
     p.add_argument("--method", default="contour", choices=METHOD_CHOICES, help=METHOD_HELP)
+    p.add_argument("--snapshots", metavar="FILE.png", help="also draw the boxes on six event frames into a PNG")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 

@@ -46,11 +46,16 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     h5, csv = tmp_path / "o.h5", tmp_path / "tracks.csv"
     subprocess.run(etam_argv("sim", "objects", "--out", str(h5), "--duration", "4", "--seed", "3", "--json"),
                    check=True, capture_output=True, timeout=120)
-    run = subprocess.run(etam_argv("track", str(h5), "--out", str(csv), "--json"), capture_output=True, text=True,
-                         timeout=120)
+    png = tmp_path / "boxes.png"
+    run = subprocess.run(etam_argv("track", str(h5), "--out", str(csv), "--snapshots", str(png), "--json"),
+                         capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     summary = json.loads(run.stdout)
     assert summary["updates"] == 400 and summary["boxes"] > 100
+    import cv2
+
+    grid = cv2.imread(str(png))
+    assert grid.shape == (2 * 260, 3 * 346, 3) and grid.any()  # six event frames with boxes
     assert csv.read_text().splitlines()[0] == "t_us,id,x,y,w,h,score"
     run = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5), "--json"),
                          capture_output=True, text=True, timeout=120)
@@ -66,8 +71,13 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
 def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     from benchmarks import tracking
 
+    from services.tracker.objects.tracker import METHODS
+
     rows = tracking.run(quick=True)
-    assert [r["seed"] for r in rows] == [11, 12, "mean"]
-    mean = rows[-1]
+    assert [r["seed"] for r in rows] == [11, 12] + ["mean"] * (len(METHODS) + 1)
+    assert [r["method"] for r in rows[2:]] == [*METHODS, "dv MeanShiftTracker"]
+    mean = rows[2]
     assert mean["op50"] == pytest.approx((rows[0]["op50"] + rows[1]["op50"]) / 2)
-    assert 0 < mean["op50"] <= 1 and mean["false_positives_per_s"] >= 0
+    for row in rows[2:]:
+        assert 0 <= row["op50"] <= 1 and row["false_positives_per_s"] >= 0
+    assert mean["op50"] > 0.3  # the default method finds the objects

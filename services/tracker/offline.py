@@ -84,3 +84,36 @@ def eval_tracking(pred: Path, truth: Path) -> dict[str, Any]:
     if boxes is None:
         raise ValueError(f"{truth}: has no ground-truth boxes (/truth/boxes)")
     return {"pred": str(pred), "truth": str(truth), **evaluate(predicted, boxes).as_dict()}
+
+
+def snapshots(src: Path, tracks: np.ndarray, out: Path, n: int = 6, window_us: int = 30_000) -> None:
+    """A PNG of `n` event frames, evenly spread over the recording, with the tracked boxes and ids
+    of the nearest update drawn on them (ON events white, OFF grey)."""
+    import cv2
+
+    with open_recording(src) as rec:
+        ev = np.concatenate([c for c in rec.chunks() if len(c)])
+        width, height = rec.width, rec.height
+    if not len(ev):
+        raise ValueError(f"{src}: no events to draw")
+    times = np.linspace(int(ev["t"][0]) + window_us, int(ev["t"][-1]), n).astype(np.int64)
+    updates = np.unique(tracks[:, 0]) if len(tracks) else np.zeros(0)
+    tiles = []
+    for t in times:
+        frame = ev[(ev["t"] > t - window_us) & (ev["t"] <= t)]
+        img = np.zeros((height, width, 3), np.uint8)
+        img[frame["y"], frame["x"]] = np.where(frame["p"][:, None] > 0, 255, 110).astype(np.uint8)
+        k = np.searchsorted(updates, t, side="right") - 1
+        for row in tracks[tracks[:, 0] == updates[k]] if k >= 0 else []:
+            x, y, w, h = (int(round(v)) for v in row[2:6])
+            colour = tuple(int(c) for c in np.random.default_rng(int(row[1])).integers(80, 256, 3))
+            cv2.rectangle(img, (x, y), (x + w, y + h), colour, 1)
+            cv2.putText(img, str(int(row[1])), (x + 2, y + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1)
+        cv2.putText(img, f"{t / 1e6:.3f} s", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 200, 255), 1)
+        tiles.append(img)
+    cols = min(3, n)
+    while len(tiles) % cols:
+        tiles.append(np.zeros_like(tiles[0]))
+    grid = np.vstack([np.hstack(tiles[i:i + cols]) for i in range(0, len(tiles), cols)])
+    if not cv2.imwrite(str(out), grid):
+        raise ValueError(f"{out}: cannot write the image")
