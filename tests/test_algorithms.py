@@ -12,7 +12,6 @@ from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
 from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, iou
-from services.tracker.objects.tracker import ObjectTracker
 
 
 def _events(ts: list[int]) -> np.ndarray:
@@ -112,23 +111,6 @@ def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> Non
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[0] > by_id[2].box[0]  # each id went on with its own target
     assert by_id[1].box[2] == pytest.approx(30, abs=3)  # and kept its size through the merge
-
-
-def test_tracker_follows_simulated_objects() -> None:
-    scene = ObjectsScene(seed=0)
-    sim = EventSimulator(scene, seed=0)
-    tracker = ObjectTracker(scene.width, scene.height)
-    matched = total = 0
-    for t in range(10_000, 3_000_001, 10_000):
-        tracker.accept(sim.advance(t))
-        out = tracker.generate(t)
-        _, truth, _ = scene.boxes(t)
-        if t > 500_000 and len(truth):
-            total += len(truth)
-            live = out.boxes[out.states == TRACKED]
-            if len(live):
-                matched += int((iou(truth, live).max(axis=1) > 0.3).sum())
-    assert total > 0 and matched / total > 0.5
 
 
 def test_key_counter_counts_gaps_and_windows() -> None:

@@ -91,10 +91,10 @@ def test_unknown_method_is_named() -> None:
         method_params("kalman")
 
 
-@pytest.mark.parametrize("method", list(METHODS))
-def test_every_method_follows_simulated_objects(method: str) -> None:
-    scene = ObjectsScene(seed=3)
-    sim = EventSimulator(scene, seed=3)
+@pytest.mark.parametrize(("method", "seed", "floor"), [("contour", 0, 0.5)] + [(m, 3, 0.4) for m in METHODS])
+def test_every_method_follows_simulated_objects(method: str, seed: int, floor: float) -> None:
+    scene = ObjectsScene(seed=seed)
+    sim = EventSimulator(scene, seed=seed)
     tracker = ObjectTracker(scene.width, scene.height, method_params(method))
     matched = total = 0
     for t in range(10_000, 3_000_001, 10_000):
@@ -106,4 +106,4 @@ def test_every_method_follows_simulated_objects(method: str) -> None:
             live = out.boxes[out.states == TRACKED]
             if len(live):
                 matched += int((iou(truth, live).max(axis=1) > 0.3).sum())
-    assert total > 0 and matched / total > 0.4
+    assert total > 0 and matched / total > floor

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 TENTATIVE, TRACKED, LOST = 0, 1, 2
+_GONE = -1  # merged or expired during an update; removed before it returns
 
 Refine = Callable[[np.ndarray], np.ndarray]  # a predicted box -> the box moved onto the events
 
@@ -112,7 +113,7 @@ class MultiObjectTracker:
             if len(members) >= 2:
                 shared[int(di)] = members
         in_shared = {ti for members in shared.values() for ti in members}
-        live &= self._states() != -1
+        live &= self._states() != _GONE
         assigned = self._match(pred, boxes, exclude_tracks=in_shared, exclude_dets=set(shared))
         used = set(assigned.values()) | set(shared)
         # fragments: small detections mostly inside a track's prediction join its measurement
@@ -132,9 +133,9 @@ class MultiObjectTracker:
             self._coast(self.tracks[ti], pred[ti], t_us, refine)
         observed = pred[sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
-            if ti not in pieces and ti not in in_shared and tr.state != -1:
+            if ti not in pieces and ti not in in_shared and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
-        self.tracks = [tr for tr in self.tracks if tr.state != -1]
+        self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
         for di in range(len(boxes)):
             if di not in used:
                 self.tracks.append(Track(self._next_id, boxes[di].copy(), t_us, first_seen_us=t_us,
@@ -144,7 +145,7 @@ class MultiObjectTracker:
 
     def _merge_alike(self, t_us: int, members: list[int]) -> list[int]:
         """Of tracks sharing one detection, fold each young or same-moving one into the oldest of
-        them (marked state -1, removed after the update); the members left."""
+        them (marked `_GONE`, removed after the update); the members left."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -155,7 +156,7 @@ class MultiObjectTracker:
                 alike = np.linalg.norm(tr.vel - older.vel) <= p.same_velocity_px_s
                 if tr.state == TENTATIVE or t_us - tr.first_seen_us < p.young_us or alike:
                     older.hits = max(older.hits, tr.hits)
-                    tr.state = -1
+                    tr.state = _GONE
                     break
             else:
                 keep.append(i)
@@ -175,7 +176,7 @@ class MultiObjectTracker:
         area_ratio = (boxes[None, :, 2] * boxes[None, :, 3]) / np.maximum(pred[:, 2:3] * pred[:, 3:4], 1.0)
         similar = (area_ratio > 0.4) & (area_ratio < 2.5)
         gate = np.where(lost, p.redetect_gate, p.gate) * size
-        allowed = ((overlap >= p.min_iou) | ((dist <= gate) & similar)) & (self._states()[:, None] != -1)
+        allowed = ((overlap >= p.min_iou) | ((dist <= gate) & similar)) & (self._states()[:, None] != _GONE)
         allowed[list(exclude_tracks), :] = False
         allowed[:, list(exclude_dets)] = False
         cost = np.where(overlap >= p.min_iou, -overlap, dist / size)
@@ -232,11 +233,11 @@ class MultiObjectTracker:
         unseen_us = t_us - tr.last_seen_us
         if tr.state == TENTATIVE:
             if unseen_us > p.lost_after_us:
-                tr.state = -1
+                tr.state = _GONE
             return
         if tr.state == LOST:
             if unseen_us > p.forget_after_us:
-                tr.state = -1
+                tr.state = _GONE
             return
         if self._leaving(tr.box):
             tr.state = LOST

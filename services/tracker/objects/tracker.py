@@ -91,13 +91,11 @@ class ObjectTracker:
         else:
             self.frames = DecayedAccumulator(width, height, self.params.tau_us)
         self.association = MultiObjectTracker(self.params.association, width, height)
-        self._pending = 0
         self._sampled: list[np.ndarray] = []
 
     def accept(self, events: np.ndarray) -> None:
         if self.params.max_events:
             self._sampled.append(events)
-            self._pending += len(events)
         else:
             self.frames.accept(events)
 
@@ -120,7 +118,7 @@ class ObjectTracker:
         """This update's events, thinned to key events (each weighted by the events of its cell)
         when there are more than `max_events` of them."""
         events = ev_ops.concat(self._sampled) if len(self._sampled) > 1 else self._sampled[0]
-        self._sampled, self._pending = [], 0
+        self._sampled = []
         if len(events) <= self.params.max_events or not isinstance(self.frames, DecayedAccumulator):
             self.frames.accept(events)
             return
@@ -161,4 +159,4 @@ class ObjectTracker:
     def reset(self) -> None:
         self.frames.reset()
         self.association.reset()
-        self._sampled, self._pending = [], 0
+        self._sampled = []
