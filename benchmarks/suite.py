@@ -104,9 +104,12 @@ def format_results(results: dict) -> str:
                      f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
                      f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f}"
                      f"  ({row['method']})")
-    for key in ("tracker", "simulator"):
-        for row in results.get(key, []):
-            extra = "".join(f", {k} {v:.2f}" for k, v in row.items() if k.endswith("_ms_p50") or k.endswith("_ms_p99"))
-            lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
-                         f"{row['realtime_factor']:.1f}x real time{extra}")
+    for row in results.get("tracker", []):
+        p99 = f", p99 {row['update_ms_p99']:.2f}" if "update_ms_p99" in row else ""
+        lines.append(f"{row['stage']} {row['method']:<20} {row['window_ms']:.0f} ms windows: "
+                     f"{row['events_per_s'] / 1e6:6.2f} Mev/s, update p50 {row['update_ms_p50']:.3f} ms{p99}"
+                     f"  (stream {row['stream_events_per_s'] / 1e6:.2f} Mev/s)")
+    for row in results.get("simulator", []):
+        lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
+                     f"{row['realtime_factor']:.1f}x real time")
     return "\n".join(lines)

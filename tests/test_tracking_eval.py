@@ -81,3 +81,17 @@ def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     for row in rows[2:]:
         assert 0 <= row["op50"] <= 1 and row["false_positives_per_s"] >= 0
     assert mean["op50"] > 0.3  # the default method finds the objects
+
+
+def test_bench_tracker_speed_rows_print_as_a_table() -> None:
+    from benchmarks import suite, tracking
+
+    from services.tracker.objects.tracker import METHODS
+
+    rows = tracking.speed(quick=True)
+    assert [r["method"] for r in rows] == [*METHODS, next(iter(METHODS)), "dv MeanShiftTracker"]
+    assert [r["window_ms"] for r in rows] == [10.0] * len(METHODS) + [15.0, 10.0]
+    assert all(r["events_per_s"] > 0 and r["update_ms_p50"] > 0 for r in rows)
+    assert rows[0]["stream_events_per_s"] > 3e5  # the dense stream the figures are for
+    text = suite.format_results({"machine": {}, "tracker": rows})
+    assert text.count("tracker speed") == len(rows) and "dv MeanShiftTracker" in text

@@ -12,18 +12,23 @@ knew it was lost. Here:
   to be one target (they share a detection and move together) merge into the oldest;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
   prediction before `forget_after_us`.
+
+An update sees a handful of tracks and detections, so the boxes are plain tuples of floats: numpy's
+per-call cost on arrays of three boxes was most of an update's time.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 TENTATIVE, TRACKED, LOST = 0, 1, 2
 _GONE = -1  # merged or expired during an update; removed before it returns
 
+Box = tuple[float, float, float, float]  # x, y, w, h
 Refine = Callable[[np.ndarray], np.ndarray]  # a predicted box -> the box moved onto the events
 
 
@@ -47,19 +52,19 @@ class AssociationParams:
 @dataclass
 class Track:
     ident: int
-    box: np.ndarray  # x, y, w, h at `t_us`
+    box: Box  # at `t_us`
     t_us: int
-    vel: np.ndarray = field(default_factory=lambda: np.zeros(2, np.float32))  # px/s of the centre
+    vel: tuple[float, float] = (0.0, 0.0)  # px/s of the centre
     hits: int = 1
     first_seen_us: int = 0
     last_seen_us: int = 0
     state: int = TENTATIVE
     score: float = 0.3
 
-    def predict(self, t_us: int) -> np.ndarray:
-        box = self.box.copy()
-        box[:2] += self.vel * ((t_us - self.t_us) / 1e6)
-        return box
+    def predict(self, t_us: int) -> Box:
+        dt_s = (t_us - self.t_us) / 1e6
+        x, y, w, h = self.box
+        return x + self.vel[0] * dt_s, y + self.vel[1] * dt_s, w, h
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -76,14 +81,23 @@ def intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.clip(iw, 0, None) * np.clip(ih, 0, None)
 
 
-def _centres(boxes: np.ndarray) -> np.ndarray:
-    return boxes[:, :2] + boxes[:, 2:] / 2
+def _overlap(a: Box, b: Box) -> float:
+    iw = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
+    ih = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
+    return iw * ih if iw > 0 and ih > 0 else 0.0
 
 
-def _union(boxes: np.ndarray) -> np.ndarray:
-    x0, y0 = boxes[:, 0].min(), boxes[:, 1].min()
-    return np.array([x0, y0, (boxes[:, 0] + boxes[:, 2]).max() - x0, (boxes[:, 1] + boxes[:, 3]).max() - y0],
-                    np.float32)
+def _area(box: Box) -> float:
+    return max(box[2] * box[3], 1.0)
+
+
+def _centre(box: Box) -> tuple[float, float]:
+    return box[0] + box[2] / 2, box[1] + box[3] / 2
+
+
+def _union(boxes: list[Box]) -> Box:
+    x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+    return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
 
 
 class MultiObjectTracker:
@@ -98,48 +112,46 @@ class MultiObjectTracker:
     def update(self, t_us: int, boxes: np.ndarray, refine: Refine | None = None) -> list[Track]:
         """Tracks at `t_us` given the detections (N x 4 boxes) of that time."""
         p = self.params
-        boxes = np.asarray(boxes, np.float32).reshape(-1, 4)
-        pred = np.array([tr.predict(t_us) for tr in self.tracks], np.float32).reshape(-1, 4)
-        inter = intersection(pred, boxes)
-        track_area = np.maximum(pred[:, 2] * pred[:, 3], 1.0)[:, None]
-        det_area = np.maximum(boxes[:, 2] * boxes[:, 3], 1.0)[None, :]
-        live = np.array([tr.state != LOST for tr in self.tracks], bool)
+        dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
+        pred = [tr.predict(t_us) for tr in self.tracks]
+        inter = [[_overlap(a, b) for b in dets] for a in pred]
+        live = [tr.state != LOST for tr in self.tracks]
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
         # tracks are one target seen in pieces before: merge those, refine the rest
-        inside = (inter / track_area >= 0.5) & live[:, None]
         shared: dict[int, list[int]] = {}
-        for di in np.flatnonzero(inside.sum(axis=0) >= 2):
-            members = self._merge_alike(t_us, [int(i) for i in np.flatnonzero(inside[:, di])])
-            if len(members) >= 2:
-                shared[int(di)] = members
+        for di in range(len(dets)):
+            inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)]
+            if len(inside) >= 2:
+                members = self._merge_alike(t_us, inside)
+                if len(members) >= 2:
+                    shared[di] = members
         in_shared = {ti for members in shared.values() for ti in members}
-        live &= self._states() != _GONE
-        assigned = self._match(pred, boxes, exclude_tracks=in_shared, exclude_dets=set(shared))
+        live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]
+        assigned = self._match(pred, dets, inter, in_shared, set(shared))
         used = set(assigned.values()) | set(shared)
         # fragments: small detections mostly inside a track's prediction join its measurement
         pieces: dict[int, list[int]] = {ti: [di] for ti, di in assigned.items()}
-        for di in range(len(boxes)):
-            if di in used:
+        for di, det in enumerate(dets):
+            if di in used or not pred:
                 continue
-            cover = np.where(live, inter[:, di] / det_area[0, di], 0.0)
-            ti = int(np.argmax(cover)) if len(cover) else -1
-            if ti >= 0 and cover[ti] >= 0.6 and det_area[0, di] < p.fragment_area * track_area[ti, 0]:
+            cover = [inter[ti][di] / _area(det) if live[ti] else 0.0 for ti in range(len(pred))]
+            ti = max(range(len(cover)), key=cover.__getitem__)
+            if cover[ti] >= 0.6 and _area(det) < p.fragment_area * _area(pred[ti]):
                 if ti in pieces and t_us - self.tracks[ti].first_seen_us < p.young_us:
                     pieces[ti].append(di)  # a target first seen in pieces: its box grows to hold them
                 used.add(di)
-        for ti, dets in pieces.items():
-            self._correct(self.tracks[ti], _union(boxes[dets]), t_us)
+        for ti, members in pieces.items():
+            self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         for ti in in_shared:
             self._coast(self.tracks[ti], pred[ti], t_us, refine)
-        observed = pred[sorted(set(pieces) | in_shared)]
+        observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
-        for di in range(len(boxes)):
+        for di, det in enumerate(dets):
             if di not in used:
-                self.tracks.append(Track(self._next_id, boxes[di].copy(), t_us, first_seen_us=t_us,
-                                         last_seen_us=t_us))
+                self.tracks.append(Track(self._next_id, det, t_us, first_seen_us=t_us, last_seen_us=t_us))
                 self._next_id += 1
         return list(self.tracks)
 
@@ -153,7 +165,7 @@ class MultiObjectTracker:
             tr = self.tracks[i]
             for k in keep:
                 older = self.tracks[k]
-                alike = np.linalg.norm(tr.vel - older.vel) <= p.same_velocity_px_s
+                alike = math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
                 if tr.state == TENTATIVE or t_us - tr.first_seen_us < p.young_us or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
@@ -162,71 +174,72 @@ class MultiObjectTracker:
                 keep.append(i)
         return keep
 
-    def _match(self, pred: np.ndarray, boxes: np.ndarray, exclude_tracks: set[int],
+    def _match(self, pred: list[Box], dets: list[Box], inter: list[list[float]], exclude_tracks: set[int],
                exclude_dets: set[int]) -> dict[int, int]:
         """One-to-one assignment, greedy by overlap, then by centre distance within the gate; lost
         tracks also take detections of their size near their prediction (re-detection)."""
-        if not len(pred) or not len(boxes):
-            return {}
         p = self.params
-        overlap = iou(pred, boxes)
-        dist = np.linalg.norm(_centres(pred)[:, None, :] - _centres(boxes)[None, :, :], axis=2)
-        size = np.maximum(pred[:, 2:].max(axis=1, keepdims=True), 1.0)
-        lost = np.array([tr.state == LOST for tr in self.tracks])[:, None]
-        area_ratio = (boxes[None, :, 2] * boxes[None, :, 3]) / np.maximum(pred[:, 2:3] * pred[:, 3:4], 1.0)
-        similar = (area_ratio > 0.4) & (area_ratio < 2.5)
-        gate = np.where(lost, p.redetect_gate, p.gate) * size
-        allowed = ((overlap >= p.min_iou) | ((dist <= gate) & similar)) & (self._states()[:, None] != _GONE)
-        allowed[list(exclude_tracks), :] = False
-        allowed[:, list(exclude_dets)] = False
-        cost = np.where(overlap >= p.min_iou, -overlap, dist / size)
-        cost = cost + lost * 0.5  # live tracks first
+        pairs = []
+        for ti, (a, tr) in enumerate(zip(pred, self.tracks, strict=True)):
+            if ti in exclude_tracks or tr.state == _GONE:
+                continue
+            lost = tr.state == LOST
+            size = max(a[2], a[3], 1.0)
+            gate = (p.redetect_gate if lost else p.gate) * size
+            for di, b in enumerate(dets):
+                if di in exclude_dets:
+                    continue
+                overlap = inter[ti][di] / max(a[2] * a[3] + b[2] * b[3] - inter[ti][di], 1e-6)
+                if overlap >= p.min_iou:
+                    cost = -overlap
+                else:
+                    ratio = b[2] * b[3] / _area(a)
+                    dist = math.dist(_centre(a), _centre(b))
+                    if not (dist <= gate and 0.4 < ratio < 2.5):
+                        continue
+                    cost = dist / size
+                pairs.append((cost + 0.5 * lost, ti, di))  # live tracks first
         out: dict[int, int] = {}
         used_d: set[int] = set()
-        for flat in np.argsort(np.where(allowed, cost, np.inf), axis=None):
-            ti, di = divmod(int(flat), len(boxes))
-            if not allowed[ti, di]:
-                break
-            if ti in out or di in used_d:
-                continue
-            out[ti] = di
-            used_d.add(di)
+        for _, ti, di in sorted(pairs):
+            if ti not in out and di not in used_d:
+                out[ti] = di
+                used_d.add(di)
         return out
 
-    def _states(self) -> np.ndarray:
-        return np.array([tr.state for tr in self.tracks], np.int8)
-
-    def _correct(self, tr: Track, box: np.ndarray, t_us: int) -> None:
+    def _correct(self, tr: Track, box: Box, t_us: int) -> None:
         """A measured box: velocity from the centre's move, size smoothed."""
         p = self.params
         dt_s = (t_us - tr.t_us) / 1e6
+        (cx, cy), (ox, oy) = _centre(box), _centre(tr.box)
         if dt_s > 0 and tr.state != LOST:
-            measured = (_centres(box[None])[0] - _centres(tr.box[None])[0]) / dt_s
-            tr.vel = ((1 - p.velocity_gain) * tr.vel + p.velocity_gain * measured).astype(np.float32)
+            g = p.velocity_gain
+            tr.vel = ((1 - g) * tr.vel[0] + g * (cx - ox) / dt_s, (1 - g) * tr.vel[1] + g * (cy - oy) / dt_s)
         elif tr.state == LOST:
-            tr.vel[:] = 0
+            tr.vel = (0.0, 0.0)
         if tr.state == LOST or tr.hits < p.confirm_hits:
-            tr.box = box.astype(np.float32)
+            tr.box = box
         else:
-            size = (1 - p.size_gain) * tr.box[2:] + p.size_gain * box[2:]
-            tr.box = np.concatenate([_centres(box[None])[0] - size / 2, size]).astype(np.float32)
+            g = p.size_gain
+            w, h = (1 - g) * tr.box[2] + g * box[2], (1 - g) * tr.box[3] + g * box[3]
+            tr.box = (cx - w / 2, cy - h / 2, w, h)
         tr.hits += 1
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
             tr.state = TRACKED
 
-    def _coast(self, tr: Track, pred: np.ndarray, t_us: int, refine: Refine | None) -> None:
+    def _coast(self, tr: Track, pred: Box, t_us: int, refine: Refine | None) -> None:
         """A track inside a shared detection: its predicted box, nudged towards its events."""
         box = pred
         if refine is not None:
-            moved = refine(pred)
-            box = pred.copy()
-            box[:2] += self.params.refine_gain * (moved[:2] - pred[:2])
-        tr.box = box.astype(np.float32)
+            mx, my = refine(np.asarray(pred, np.float32))[:2]
+            g = self.params.refine_gain
+            box = (pred[0] + g * (float(mx) - pred[0]), pred[1] + g * (float(my) - pred[1]), pred[2], pred[3])
+        tr.box = box
         tr.t_us = tr.last_seen_us = t_us
 
-    def _unseen(self, tr: Track, pred: np.ndarray, t_us: int, observed: np.ndarray) -> None:
+    def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
         """No detection: drop a tentative track after a while; let go of a track that left the
         image; coast one hidden behind an observed track; hold one that stopped."""
         p = self.params
@@ -242,21 +255,20 @@ class MultiObjectTracker:
         if self._leaving(tr.box):
             tr.state = LOST
             return
-        hidden = len(observed) and intersection(pred[None], observed).max() >= 0.5 * pred[2] * pred[3]
+        hidden = any(_overlap(pred, o) >= 0.5 * pred[2] * pred[3] for o in observed)
         if not hidden:
-            tr.vel *= np.float32(0.5)  # a target without events has stopped: hold it
+            tr.vel = (0.5 * tr.vel[0], 0.5 * tr.vel[1])  # a target without events has stopped: hold it
             pred = tr.predict(t_us)
         tr.box, tr.t_us = pred, t_us
         tr.score *= 0.995
         if unseen_us > p.hold_us:
             tr.state = LOST
 
-    def _leaving(self, box: np.ndarray) -> bool:
+    def _leaving(self, box: Box) -> bool:
         """True if a box touches the image border (its target may have left): unseen, it is let go."""
         if not self.width:
             return False
-        return bool(box[0] <= 1 or box[1] <= 1 or box[0] + box[2] >= self.width - 1
-                    or box[1] + box[3] >= self.height - 1)
+        return box[0] <= 1 or box[1] <= 1 or box[0] + box[2] >= self.width - 1 or box[1] + box[3] >= self.height - 1
 
     def reset(self) -> None:
         self.tracks = []

@@ -35,7 +35,7 @@ class ClusterParams:
 def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
     c = params.cell_px
-    occupancy = _cell_occupancy(image, c, np.float32(params.active))
+    occupancy = _cell_occupancy(image, c, params.active)
     density = cv2.blur(occupancy, (params.window_cells, params.window_cells))
     mask = (density > params.density).astype(np.uint8)
     if params.close_cells > 1:
@@ -46,46 +46,53 @@ def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     big[1:] = stats[1:, cv2.CC_STAT_AREA] * c * c >= params.min_area_px
     if not big.any():
         return np.zeros((0, 4), np.float32)
-    boxes = _trimmed_boxes(labels, big, c, image, n, np.float32(params.recent), params.trim)[big]
+    boxes = _trimmed_boxes(labels, stats, big, c, image, np.float32(params.recent), params.trim)[big]
     return boxes[(boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
 
 
-@numba.njit(cache=True, nogil=True)
-def _cell_occupancy(image, cell, active):  # noqa: ANN001, ANN202 - numba kernel
-    """Share of the pixels of each `cell` x `cell` square whose weight reaches `active`."""
+def _cell_occupancy(image: np.ndarray, cell: int, active: float) -> np.ndarray:
+    """Share of the pixels of each `cell` x `cell` square whose weight reaches `active` (SIMD
+    threshold and area resize; the image is padded to whole cells)."""
     h, w = image.shape
-    rows, cols = (h + cell - 1) // cell, (w + cell - 1) // cell
-    out = np.zeros((rows, cols), np.float32)
-    for y in range(h):
-        for x in range(w):
-            if image[y, x] >= active:
-                out[y // cell, x // cell] += 1.0
-    out *= 1.0 / (cell * cell)
-    return out
+    _, mask = cv2.threshold(image, np.nextafter(np.float32(active), np.float32(0)), 1.0, cv2.THRESH_BINARY)
+    rows, cols = -(-h // cell), -(-w // cell)
+    if (rows * cell, cols * cell) != (h, w):
+        mask = cv2.copyMakeBorder(mask, 0, rows * cell - h, 0, cols * cell - w, cv2.BORDER_CONSTANT, value=0)
+    return cv2.resize(mask, (cols, rows), interpolation=cv2.INTER_AREA)
 
 
 @numba.njit(cache=True, nogil=True)
-def _trimmed_boxes(labels, keep, cell, image, n, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
-    """Per kept cell label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h)."""
+def _trimmed_boxes(labels, stats, keep, cell, image, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+    """Per kept cell label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h).
+    Only the pixels under each label's cell box are read."""
     h, w = image.shape
-    col = np.zeros((n, w), np.int32)
-    row = np.zeros((n, h), np.int32)
-    for y in range(h):
-        for x in range(w):
-            if image[y, x] >= recent:
-                lab = labels[y // cell, x // cell]
-                if lab and keep[lab]:
-                    col[lab, x] += 1
-                    row[lab, y] += 1
+    n = len(keep)
+    col = np.zeros(w, np.int32)
+    row = np.zeros(h, np.int32)
     out = np.zeros((n, 4), np.float32)
     for lab in range(1, n):
-        total = col[lab].sum()
+        if not keep[lab]:
+            continue
+        col[:] = 0
+        row[:] = 0
+        cx0, cy0, cw, ch = stats[lab, 0], stats[lab, 1], stats[lab, 2], stats[lab, 3]
+        for y in range(cy0 * cell, min((cy0 + ch) * cell, h)):
+            cell_row = labels[y // cell]
+            src = image[y]
+            for cx in range(cx0, cx0 + cw):
+                if cell_row[cx] != lab:
+                    continue
+                for x in range(cx * cell, min(cx * cell + cell, w)):
+                    if src[x] >= recent:
+                        col[x] += 1
+                        row[y] += 1
+        total = col.sum()
         if total == 0:
             continue
         cut = trim * total
-        lo, hi = _quantiles(col[lab], cut)
+        lo, hi = _quantiles(col, cut)
         out[lab, 0], out[lab, 2] = lo, hi + 1 - lo
-        lo, hi = _quantiles(row[lab], cut)
+        lo, hi = _quantiles(row, cut)
         out[lab, 1], out[lab, 3] = lo, hi + 1 - lo
     return out
 

@@ -2,27 +2,35 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 
 def mean_shift(image: np.ndarray, box: np.ndarray, iterations: int = 3) -> np.ndarray:
     """`box` (x, y, w, h) moved, keeping its size, to the centroid of `image` under it; unchanged
     where it covers nothing."""
+    return _mean_shift(image, np.asarray(box, np.float32).copy(), iterations)
+
+
+@numba.njit(cache=True, nogil=True)
+def _mean_shift(image, box, iterations):  # noqa: ANN001, ANN202 - numba kernel
     h_img, w_img = image.shape
-    box = np.asarray(box, np.float32).copy()
     for _ in range(iterations):
-        x0, y0 = int(max(box[0], 0)), int(max(box[1], 0))
+        x0, y0 = int(max(box[0], 0.0)), int(max(box[1], 0.0))
         x1, y1 = int(min(box[0] + box[2], w_img)), int(min(box[1] + box[3], h_img))
-        if x1 <= x0 or y1 <= y0:
-            break
-        patch = image[y0:y1, x0:x1]
-        mass = float(patch.sum())
+        mass = sx = sy = 0.0
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                v = image[y, x]
+                mass += v
+                sx += v * x
+                sy += v * y
         if mass <= 0:
             break
-        cx = float(patch.sum(axis=0) @ np.arange(x0, x1)) / mass + 0.5
-        cy = float(patch.sum(axis=1) @ np.arange(y0, y1)) / mass + 0.5
-        shift = np.array([cx - box[0] - box[2] / 2, cy - box[1] - box[3] / 2], np.float32)
-        box[:2] += shift
-        if np.abs(shift).max() < 0.5:
+        dx = sx / mass + 0.5 - box[0] - box[2] / 2
+        dy = sy / mass + 0.5 - box[1] - box[3] / 2
+        box[0] += dx
+        box[1] += dy
+        if abs(dx) < 0.5 and abs(dy) < 0.5:
             break
     return box
