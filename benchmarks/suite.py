@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import filters, playback, readers, tracking, transport, writers
+from benchmarks import filters, latency, playback, readers, tracking, transport, writers
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -38,6 +38,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "playback": playback.run,
     "tracker": tracking.speed,
     "tracking": tracking.run,
+    "latency": latency.run,
     "simulator": _simulator,
 }
 
@@ -109,6 +110,14 @@ def format_results(results: dict) -> str:
         lines.append(f"{row['stage']} {row['method']:<20} {row['window_ms']:.0f} ms windows: "
                      f"{row['events_per_s'] / 1e6:6.2f} Mev/s, update p50 {row['update_ms_p50']:.3f} ms{p99}"
                      f"  (stream {row['stream_events_per_s'] / 1e6:.2f} Mev/s)")
+    for row in results.get("latency", []):
+        rig = "etam up" if row["web"] else "etam up --no-web"
+        if "error" in row:
+            lines.append(f"{row['stage']} ({rig}): {row['error']}")
+            continue
+        lines.append(f"tracking latency camera publish -> tracks publish, {rig}: p50 {row['latency_ms_p50']:.2f} ms "
+                     f"p99 {row['latency_ms_p99']:.2f} ms max {row['latency_ms_max']:.1f} ms over {row['updates']} "
+                     f"updates at {row['events_per_s'] / 1e6:.2f} Mev/s")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

@@ -101,9 +101,13 @@ def _cmd_up(args: argparse.Namespace) -> int:
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level,
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
-                     *(a for f in args.filter or [] for a in ("--filter", f))),
+                     *(a for f in args.filter or [] for a in ("--filter", f)),
+                     *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
     )
+    from services.camera.simulator import SimParams
     from services.camera.sources import open_sources
+
+    SimParams.parse(args.sim_param or [])  # a bad simulator parameter fails here, before anything starts
 
     if args.rate < 0:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
@@ -275,6 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=1.0, help="playback speed of a recording (0: as fast as possible)")
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
     p.add_argument("--filter", action="append", metavar="NAME[:ARGS]", help="camera filter chain (see etam camera)")
+    p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
     p.add_argument("--rig", help="rig name (env ETAM_RIG; default: host name)")
     p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")

@@ -178,6 +178,9 @@ def test_bad_flags_give_clear_errors(tmp_path) -> None:  # noqa: ANN001
     fog = subprocess.run(etam_argv("up", "--filter", "fog", "--duration", "1"), capture_output=True, text=True,
                          timeout=30)
     assert fog.returncode == 2 and "filter 'fog'" in fog.stderr and "Traceback" not in fog.stderr
+    sim = subprocess.run(etam_argv("up", "--sim-param", "contrast=lots", "--duration", "1"), capture_output=True,
+                         text=True, timeout=30)
+    assert sim.returncode == 2 and "contrast='lots'" in sim.stderr and "Traceback" not in sim.stderr
 
 
 def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str) -> None:

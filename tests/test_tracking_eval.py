@@ -95,3 +95,16 @@ def test_bench_tracker_speed_rows_print_as_a_table() -> None:
     assert rows[0]["stream_events_per_s"] > 3e5  # the dense stream the figures are for
     text = suite.format_results({"machine": {}, "tracker": rows})
     assert text.count("tracker speed") == len(rows) and "dv MeanShiftTracker" in text
+
+
+def test_bench_latency_times_updates_of_a_running_rig() -> None:
+    from benchmarks import latency, suite
+
+    rows = latency.run(quick=True)
+    assert [r["web"] for r in rows] == [False, True]
+    for row in rows:
+        assert "error" not in row, row
+        assert row["updates"] >= 50 and row["events_per_s"] > 1e5  # ~100 updates a second of a dense stream
+        assert 0 < row["latency_ms_p50"] <= row["latency_ms_p99"] <= row["latency_ms_max"]
+    text = suite.format_results({"machine": {}, "latency": rows})
+    assert "etam up --no-web" in text and text.count("tracking latency") == 2
