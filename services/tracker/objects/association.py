@@ -6,8 +6,10 @@ knew it was lost. Here:
 - a target that stops (no more events) is held where it stopped, and a target hidden behind
   another coasts at its velocity, both still `TRACKED` for `hold_us`; one that leaves the image is
   let go at once;
-- two tracks that share one detection (crossing targets) keep their sizes and move by prediction,
-  nudged by a mean-shift `refine`, instead of collapsing onto the merged blob;
+- two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
+  onto the merged blob: the detection is the union of their targets, so the outermost track on each
+  side is set against the detection's edge there; where that says nothing they move by prediction,
+  nudged by a mean-shift `refine`;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection and move together) merge into the oldest;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
@@ -100,6 +102,28 @@ def _union(boxes: list[Box]) -> Box:
     return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
 
 
+def _anchor(preds: list[Box], blob: Box) -> tuple[list[list[float]], list[list[bool]]]:
+    """Boxes of the tracks that share one detection, at their sizes, and which of their axes were
+    set. The detection is the union of the targets: on an axis where the tracks predicted outermost
+    on each side are side by side (they overlap on the other axis), each is moved to the detection's
+    edge on its side; elsewhere a track only stays inside the detection."""
+    out = [list(b) for b in preds]
+    anchored = [[False, False] for _ in preds]
+    for axis, (lo, size) in enumerate(((0, 2), (1, 3))):
+        other, other_size = 1 - lo, 5 - size
+        first = min(range(len(out)), key=lambda i: out[i][lo])
+        last = max(range(len(out)), key=lambda i: out[i][lo] + out[i][size])
+        a, b = out[first], out[last]
+        beside = min(a[other] + a[other_size], b[other] + b[other_size]) - max(a[other], b[other]) > 0
+        edge_lo, edge_hi = blob[lo], blob[lo] + blob[size]
+        if first != last and beside:
+            a[lo], b[lo] = edge_lo, edge_hi - b[size]
+            anchored[first][axis] = anchored[last][axis] = True
+        for box in out:
+            box[lo] = min(max(box[lo], edge_lo), edge_hi - box[size])
+    return out, anchored
+
+
 class MultiObjectTracker:
     """Keeps tracks from successive detections; `update` returns the tracks to report."""
 
@@ -142,8 +166,10 @@ class MultiObjectTracker:
                 used.add(di)
         for ti, members in pieces.items():
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
-        for ti in in_shared:
-            self._coast(self.tracks[ti], pred[ti], t_us, refine)
+        for di, members in shared.items():
+            boxes_in, anchored = _anchor([pred[ti] for ti in members], dets[di])
+            for ti, box, axes in zip(members, boxes_in, anchored, strict=True):
+                self._coast(self.tracks[ti], box, axes, t_us, refine)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and tr.state != _GONE:
@@ -229,14 +255,16 @@ class MultiObjectTracker:
         if tr.hits >= p.confirm_hits:
             tr.state = TRACKED
 
-    def _coast(self, tr: Track, pred: Box, t_us: int, refine: Refine | None) -> None:
-        """A track inside a shared detection: its predicted box, nudged towards its events."""
-        box = pred
-        if refine is not None:
-            mx, my = refine(np.asarray(pred, np.float32))[:2]
+    def _coast(self, tr: Track, box: list[float], anchored: list[bool], t_us: int, refine: Refine | None) -> None:
+        """A track inside a shared detection: its anchored prediction, nudged towards its events on
+        the axes not anchored."""
+        if refine is not None and not all(anchored):
+            moved = refine(np.asarray(box, np.float32))
             g = self.params.refine_gain
-            box = (pred[0] + g * (float(mx) - pred[0]), pred[1] + g * (float(my) - pred[1]), pred[2], pred[3])
-        tr.box = box
+            for axis in (0, 1):
+                if not anchored[axis]:
+                    box[axis] += g * (float(moved[axis]) - box[axis])
+        tr.box = (box[0], box[1], box[2], box[3])
         tr.t_us = tr.last_seen_us = t_us
 
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
