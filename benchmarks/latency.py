@@ -19,11 +19,12 @@ import time
 import numpy as np
 import zenoh
 
+from benchmarks.tracking import SPEED_SIM
 from services.config import ZenohSettings
 from services.messages import EventPacket, Tracks, decode
 
 RIG = "bench"
-SIM = ("--sim-param", "contrast=0.06")  # the objects scene at about 1 Mev/s
+SIM = ("--sim-param", f"contrast={SPEED_SIM.contrast}")  # the objects scene at about 1 Mev/s
 WARMUP_S = 3.0  # processes started, numba kernels loaded, tracks confirmed
 
 

@@ -191,3 +191,15 @@ def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:
         SimParams.parse(["speed=3"])
     with pytest.raises(ValueError, match="expected a number"):
         SimParams.parse(["contrast=high"])
+
+
+def test_tracks_sharing_a_blob_follow_its_edges() -> None:
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45
+        a_x, b_x = (40 + 3 * i if i < 45 else 175 + 0.5 * (i - 45)), 200
+        boxes = [[a_x, 100, 30, 30], [b_x, 100, 30, 30]] if b_x - a_x > 30 else [[a_x, 100, b_x + 30 - a_x, 30]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 2]
+    assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # at the blob's left edge, not where its speed says
+    assert by_id[2].box[0] == pytest.approx(b_x, abs=2) and by_id[1].box[2] == pytest.approx(30, abs=3)

@@ -109,12 +109,12 @@ def _anchor(preds: list[Box], blob: Box) -> tuple[list[list[float]], list[list[b
     edge on its side; elsewhere a track only stays inside the detection."""
     out = [list(b) for b in preds]
     anchored = [[False, False] for _ in preds]
-    for axis, (lo, size) in enumerate(((0, 2), (1, 3))):
-        other, other_size = 1 - lo, 5 - size
+    for axis in (0, 1):  # x (box[0], width box[2]), then y (box[1], height box[3])
+        lo, size, other = axis, axis + 2, 1 - axis
         first = min(range(len(out)), key=lambda i: out[i][lo])
         last = max(range(len(out)), key=lambda i: out[i][lo] + out[i][size])
         a, b = out[first], out[last]
-        beside = min(a[other] + a[other_size], b[other] + b[other_size]) - max(a[other], b[other]) > 0
+        beside = min(a[other] + a[other + 2], b[other] + b[other + 2]) > max(a[other], b[other])
         edge_lo, edge_hi = blob[lo], blob[lo] + blob[size]
         if first != last and beside:
             a[lo], b[lo] = edge_lo, edge_hi - b[size]
