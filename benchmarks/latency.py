@@ -10,7 +10,6 @@ its update, so the latency of an update is the tracks' `sent` minus that packet'
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import threading
@@ -19,6 +18,7 @@ import time
 import numpy as np
 import zenoh
 
+from benchmarks import free_port
 from benchmarks.tracking import SPEED_SIM
 from services.config import ZenohSettings
 from services.messages import EventPacket, Tracks, decode
@@ -28,12 +28,6 @@ SIM = ("--sim-param", f"contrast={SPEED_SIM.contrast}")  # the objects scene at 
 WARMUP_S = 3.0  # processes started, numba kernels loaded, tracks confirmed
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run(quick: bool = False) -> list[dict]:
     """Latency without the dashboard (a drone's rig, viewed from another machine) and with it."""
     return [_measure(quick, web=False), _measure(quick, web=True)]
@@ -41,7 +35,7 @@ def run(quick: bool = False) -> list[dict]:
 
 def _measure(quick: bool, web: bool) -> dict:
     measure_s = 2.0 if quick else 15.0
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     sent_by_stamp: dict[int, int] = {}
     latencies: list[float] = []
     events = [0, 0.0, 0.0]  # count, first and last arrival (s)
@@ -69,7 +63,7 @@ def _measure(quick: bool, web: bool) -> dict:
 
     argv = [sys.executable, "-m", "services.cli", "up", "--source", "sim:objects", *SIM, "--rig", RIG,
             "--listen", endpoint, "--duration", str(WARMUP_S + measure_s + 2), "--log-level", "WARNING",
-            *(("--web-port", str(_free_port())) if web else ("--no-web",))]
+            *(("--web-port", str(free_port())) if web else ("--no-web",))]
     rig = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
     try:
         time.sleep(1.0)  # the router listening

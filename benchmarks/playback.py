@@ -9,7 +9,6 @@ event of every play arrived.
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import tempfile
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import zenoh
 
+from benchmarks import free_port
 from benchmarks.readers import SAMPLES, _repeat_raw
 from services.camera.formats import open_recording
 from services.config import ZenohSettings
@@ -27,9 +27,7 @@ from services.messages import EventPacket, decode
 
 def _play(path: Path, expected: int) -> dict:
     """One `etam camera --rate 0` of `path` into a subscriber of this process."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     got = {"events": 0, "packets": 0, "gaps": 0, "last_seq": 0, "first": 0.0, "last": 0.0}
     lock, done = threading.Lock(), threading.Event()
 

@@ -60,11 +60,12 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
     return rows
 
 
-def _packets(h5: Path) -> tuple[list[tuple[int, np.ndarray]], int, int]:
+def _packets(h5: Path, window_us: int = PACKET_US) -> tuple[list[tuple[int, np.ndarray]], int, int]:
+    """The file's events cut into windows of `window_us`, each with its end time, and the sensor size."""
     with open_recording(h5) as rec:
         ev = np.concatenate(list(rec.chunks()))
         width, height = rec.width, rec.height
-    ends = np.arange(PACKET_US, int(ev["t"][-1]) + 1, PACKET_US)
+    ends = np.arange(window_us, int(ev["t"][-1]) + 1, window_us)
     cuts = np.searchsorted(ev["t"], ends)
     return list(zip(ends.tolist(), np.split(ev, cuts)[:-1], strict=True)), width, height
 
@@ -108,19 +109,14 @@ def speed(quick: bool = False) -> list[dict]:
         stream = {"stream_events_per_s": n_events / duration_s}
         for method in METHODS:
             rows.append(_time_tracker(method, packets, width, height, n_events, PACKET_US) | stream)
-        rows.append(_time_tracker(next(iter(METHODS)), _regroup(packets, 15_000), width, height, n_events, 15_000)
-                    | stream)
+        windows, _, _ = _packets(h5, 15_000)
+        rows.append(_time_tracker(next(iter(METHODS)), windows, width, height, sum(len(w) for _, w in windows),
+                                  15_000) | stream)
         elapsed = _dv_track(h5, Path(tmp) / "dv.csv")
         rows.append({"stage": "tracker speed", "method": "dv MeanShiftTracker", "window_ms": PACKET_US / 1e3,
                      "events": n_events, "events_per_s": n_events / elapsed,
                      "update_ms_p50": elapsed / len(packets) * 1e3} | stream)
     return rows
-
-
-def _regroup(packets: list[tuple[int, np.ndarray]], window_us: int) -> list[tuple[int, np.ndarray]]:
-    ev = np.concatenate([p for _, p in packets])
-    ends = np.arange(window_us, packets[-1][0] + 1, window_us)
-    return list(zip(ends.tolist(), np.split(ev, np.searchsorted(ev["t"], ends))[:-1], strict=True))
 
 
 def _time_tracker(method: str, packets: list[tuple[int, np.ndarray]], width: int, height: int, n_events: int,

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -20,6 +19,7 @@ import time
 import numpy as np
 import zenoh
 
+from benchmarks import free_port
 from services.config import ZenohSettings
 from services.messages import EVENT_DTYPE, EventPacket
 from services.runtime import Service, ServiceOptions
@@ -114,9 +114,7 @@ def dv_peer(count: int = 300, per_packet: int = 20_000) -> dict:
     t0 = time.perf_counter()
     stores = dv_stores(packets)
     dv_ingest = n / (time.perf_counter() - t0)
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_port()
     writer = dv.io.NetworkWriter("127.0.0.1", port, dv.io.Stream.EventStream(0, "events", "bench", (346, 260)))
     sink = subprocess.Popen([sys.executable, "-m", "benchmarks.transport", "dv-sink", str(port), str(n)],
                             stdout=subprocess.PIPE, text=True)
@@ -182,17 +180,11 @@ def run_load(events_per_s: float | None, duration_s: float, endpoint: str, satur
     }
 
 
-def _free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
 def run(loads: tuple[float | None, ...] = (1e6, 5e6, 20e6, None), duration_s: float = 3.0,
         peer_packets: int = 300) -> list[dict]:
     """One result per offered load (events/s; None: as fast as possible); the unpaced one beside
     dv-processing's network transport and numpy ingest on packets of the same shape."""
-    rows = [run_load(load, duration_s, _free_endpoint()) for load in loads]
+    rows = [run_load(load, duration_s, f"tcp/127.0.0.1:{free_port()}") for load in loads]
     for row in rows:
         if row["offered_events_per_s"] == "max":
             peer = dv_peer(peer_packets, row["events_per_packet"])

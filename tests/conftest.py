@@ -14,14 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks import free_port
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def etam_argv(*args: str) -> list[str]:

@@ -51,6 +51,11 @@ class DecayedAccumulator:
         self.t_us = None
 
 
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """A decayed image as 8 bits for OpenCV's detectors: three recent events saturate a pixel."""
+    return np.clip(image * 85.0, 0, 255).astype(np.uint8)
+
+
 @numba.njit(cache=True, nogil=True)
 def _scatter_add(image, xs, ys, values):  # noqa: ANN001, ANN202 - numba kernel
     h, w = image.shape

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.tracker.objects.accumulator import to_uint8
+
 
 @dataclass
 class CornerParams:
@@ -23,8 +25,7 @@ class CornerParams:
 
 def detect_corner_clusters(image: np.ndarray, params: CornerParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the corner clusters of a decayed event image."""
-    img8 = np.clip(image * 85.0, 0, 255).astype(np.uint8)  # three recent events saturate a pixel
-    pts = cv2.goodFeaturesToTrack(img8, params.max_corners, params.quality, params.min_distance_px)
+    pts = cv2.goodFeaturesToTrack(to_uint8(image), params.max_corners, params.quality, params.min_distance_px)
     if pts is None:
         return np.zeros((0, 4), np.float32)
     pts = pts.reshape(-1, 2)

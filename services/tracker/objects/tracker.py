@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from services import events as ev_ops
-from services.tracker.objects.accumulator import DecayedAccumulator
+from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
@@ -137,7 +137,7 @@ class ObjectTracker:
     def _camshift(self, image: np.ndarray, clusters: np.ndarray, t_us: int) -> np.ndarray:
         """Seed 003's contour method: CamShift on the Canny edges of the frame, from each live
         track's predicted box; clusters no CamShift box covers are new targets."""
-        edges = cv2.Canny(np.clip(image * 85.0, 0, 255).astype(np.uint8), 50, 150)
+        edges = cv2.Canny(to_uint8(image), 50, 150)
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 1.0)
         found = []
         for tr in self.association.tracks:
