@@ -89,6 +89,25 @@ def test_association_confirms_then_holds_a_stopped_target() -> None:
     assert tracks[0].ident == 1 and tracks[0].hits == 6
 
 
+def test_association_holds_a_target_whose_detection_only_fades() -> None:
+    """After a stop the decayed image fades for a while and its box shrinks towards the pixels that
+    fired most; a track corrected by that box slides off the still target."""
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(10):  # moving, with a thousand new events per update
+        box = np.array([[100 + 2 * i, 100, 40, 40]], np.float32)
+        mot.update(i * 10_000, box, fresh=np.array([1000.0]))
+    for i in range(10, 20):  # stopped at x=118: the fading detection shrinks to its lower right
+        k = i - 9
+        box = np.array([[118 + 2 * k, 100 + 2 * k, 40 - 2 * k, 40 - 2 * k]], np.float32)
+        tracks = mot.update(i * 10_000, box, fresh=np.array([5.0]))
+    assert tracks[0].state == TRACKED and tracks[0].vel == (0.0, 0.0)
+    assert tracks[0].box == pytest.approx((118, 100, 40, 40), abs=2)
+    for i in range(20, 30):  # moving on: new events again
+        tracks = mot.update(i * 10_000, np.array([[118 + 2 * (i - 19), 100, 40, 40]], np.float32),
+                            fresh=np.array([900.0]))
+    assert tracks[0].box[0] == pytest.approx(138, abs=4) and tracks[0].vel[0] > 100
+
+
 def test_association_lets_go_of_a_target_leaving_the_image() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [330, 100, 16, 20], [0, 0, 0, 0], 5)

@@ -3,7 +3,8 @@
 The drone report (seed 003) lost slow targets, locked onto noise once its target had gone and never
 knew it was lost. Here:
 - a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
-- a target that stops (no more events) is held where it stopped, and a target hidden behind
+- a target that stops is held where it stopped: once its detection has far fewer new events than
+  usual (it is only the fading image of the target), not when the detection has gone; and a target hidden behind
   another coasts at its velocity, both still `TRACKED` for `hold_us`; one that leaves the image is
   let go at once;
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
@@ -49,6 +50,9 @@ class AssociationParams:
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
     same_velocity_px_s: float = 40.0  # tracks in one detection moving this alike are one target
     young_us: int = 300_000  # a track younger than this merges into an older one it shares with
+    stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
+    rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
+    rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
 
 
 @dataclass
@@ -62,6 +66,7 @@ class Track:
     last_seen_us: int = 0
     state: int = TENTATIVE
     score: float = 0.3
+    rate: float = 0.0  # usual new events per update in its detection, while it moves
 
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
@@ -133,8 +138,10 @@ class MultiObjectTracker:
         self.tracks: list[Track] = []
         self._next_id = 1
 
-    def update(self, t_us: int, boxes: np.ndarray, refine: Refine | None = None) -> list[Track]:
-        """Tracks at `t_us` given the detections (N x 4 boxes) of that time."""
+    def update(self, t_us: int, boxes: np.ndarray, refine: Refine | None = None,
+               fresh: np.ndarray | None = None) -> list[Track]:
+        """Tracks at `t_us` given the detections (N x 4 boxes) of that time and, if known, the new
+        events in each since the last update."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
@@ -165,6 +172,8 @@ class MultiObjectTracker:
                     pieces[ti].append(di)  # a target first seen in pieces: its box grows to hold them
                 used.add(di)
         for ti, members in pieces.items():
+            if fresh is not None and self._fading(self.tracks[ti], float(sum(fresh[di] for di in members)), t_us):
+                continue
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         for di, members in shared.items():
             boxes_in, anchored = _anchor([pred[ti] for ti in members], dets[di])
@@ -232,6 +241,19 @@ class MultiObjectTracker:
                 out[ti] = di
                 used_d.add(di)
         return out
+
+    def _fading(self, tr: Track, new_events: float, t_us: int) -> bool:
+        """True, and the track held where it is, if its detection has far fewer new events than
+        usual: the target stopped and the detection is its fading image. Otherwise the usual count
+        learns from this one."""
+        p = self.params
+        if tr.state == TRACKED and new_events < p.stop_ratio * tr.rate:
+            tr.rate *= p.rate_decay
+            tr.vel = (0.0, 0.0)
+            tr.t_us = tr.last_seen_us = t_us
+            return True
+        tr.rate = new_events if tr.rate == 0 else (1 - p.rate_gain) * tr.rate + p.rate_gain * new_events
+        return False
 
     def _correct(self, tr: Track, box: Box, t_us: int) -> None:
         """A measured box: velocity from the centre's move, size smoothed."""

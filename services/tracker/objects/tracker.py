@@ -18,6 +18,7 @@ import numpy as np
 
 from services import events as ev_ops
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
+from services.tracker.objects.activity import FreshCounts
 from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
@@ -92,8 +93,10 @@ class ObjectTracker:
             self.frames = DecayedAccumulator(width, height, self.params.tau_us)
         self.association = MultiObjectTracker(self.params.association, width, height)
         self._sampled: list[np.ndarray] = []
+        self.fresh = FreshCounts(width, height)
 
     def accept(self, events: np.ndarray) -> None:
+        self.fresh.accept(events)
         if self.params.max_events:
             self._sampled.append(events)
         else:
@@ -104,7 +107,8 @@ class ObjectTracker:
             self._accept_sampled()
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
-        tracks = self.association.update(t_us, boxes, refine=lambda box: mean_shift(image, box))
+        tracks = self.association.update(t_us, boxes, refine=lambda box: mean_shift(image, box),
+                                         fresh=self.fresh.take(boxes))
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
@@ -159,4 +163,5 @@ class ObjectTracker:
     def reset(self) -> None:
         self.frames.reset()
         self.association.reset()
+        self.fresh.reset()
         self._sampled = []
