@@ -41,6 +41,20 @@ def test_simulator_events_fall_on_the_moving_objects() -> None:
     assert inside.mean() > 0.9  # the rest is background-activity noise
 
 
+def test_simulator_truth_leaves_out_targets_hidden_behind_nearer_ones() -> None:
+    scene = ObjectsScene(seed=0, n_objects=2)
+    near, far = sorted(scene.objects, key=lambda o: o.depth_m)
+    near.texture = np.ones((80, 80), np.float32)
+    far.texture = np.ones((40, 40), np.float32)
+    for obj, x in ((near, 100.0), (far, 110.0)):
+        obj.xs[:], obj.ys[:] = x, 100.0
+    assert scene.boxes(0)[0].tolist() == [near.ident]  # far is wholly behind near
+    far.xs[:] = 160.0  # 20 of its 40 px columns out from behind near
+    ids, boxes, _ = scene.boxes(0)
+    assert ids.tolist() == sorted([near.ident, far.ident])
+    assert boxes[ids.tolist().index(far.ident)].tolist() == [160, 100, 40, 40]  # the whole box, not its visible part
+
+
 def test_packetizer_slices_caps_and_keeps_every_event() -> None:
     p = Packetizer(slice_us=1000, max_events=3)
     p.accept(_events([100, 200, 300, 400, 500, 1500, 2999]))

@@ -171,23 +171,40 @@ class ObjectsScene:
 
     def boxes(self, t_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Ground truth of the objects in view: ids, boxes (x, y, w, h, clipped to the image), and
-        3D rows (x, y, z of the object's centre in the camera frame in m, its width in m)."""
+        3D rows (x, y, z of the object's centre in the camera frame in m, its width in m).
+
+        In view means at least a quarter of it inside the image on each axis, and no more than three
+        quarters of that hidden behind nearer objects: a target no camera can see is not scored."""
         ph = self._phase(t_us)
         ids, out, solid = [], [], []
         c = (self.width / 2, self.height / 2)
-        for obj in self.objects:
+        nearer: list[tuple[float, float, float, float]] = []
+        for obj in sorted(self.objects, key=lambda o: o.depth_m):
             x, y = obj.position(ph)
             h, w = obj.texture.shape
             x0, y0 = max(x, 0.0), max(y, 0.0)
             x1, y1 = min(x + w, self.width), min(y + h, self.height)
-            if x1 - x0 >= 0.25 * w and y1 - y0 >= 0.25 * h:  # at least a quarter in view
+            inside = x1 - x0 >= 0.25 * w and y1 - y0 >= 0.25 * h
+            if inside and _hidden_share((x0, y0, x1, y1), nearer) <= 0.75:
                 ids.append(obj.ident)
                 out.append((x0, y0, x1 - x0, y1 - y0))
                 z = obj.depth_m
                 solid.append(((x + w / 2 - c[0]) * z / self.focal_px, (y + h / 2 - c[1]) * z / self.focal_px, z,
                               obj.size_m))
-        return (np.asarray(ids, np.int32), np.asarray(out, np.float32).reshape(-1, 4),
-                np.asarray(solid, np.float32).reshape(-1, 4))
+            nearer.append((x, y, x + w, y + h))
+        order = np.argsort(ids, kind="stable")
+        return (np.asarray(ids, np.int32)[order], np.asarray(out, np.float32).reshape(-1, 4)[order],
+                np.asarray(solid, np.float32).reshape(-1, 4)[order])
+
+
+def _hidden_share(box: tuple[float, float, float, float], nearer: list[tuple[float, float, float, float]]) -> float:
+    """Share of a box (x0, y0, x1, y1) covered by the union of the `nearer` boxes, to the pixel."""
+    x0, y0 = int(np.floor(box[0])), int(np.floor(box[1]))
+    covered = np.zeros((max(int(np.ceil(box[3])) - y0, 1), max(int(np.ceil(box[2])) - x0, 1)), np.bool_)
+    for a0, b0, a1, b1 in nearer:
+        covered[max(int(round(b0)) - y0, 0):max(int(round(b1)) - y0, 0),
+                max(int(round(a0)) - x0, 0):max(int(round(a1)) - x0, 0)] = True
+    return float(covered.mean())
 
 
 @numba.njit(cache=True, nogil=True)
