@@ -122,6 +122,15 @@ def test_association_holds_a_target_whose_detection_only_fades() -> None:
     assert tracks[0].box[0] == pytest.approx(138, abs=4) and tracks[0].vel[0] > 100
 
 
+def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [100, 100, 20, 20], [0, 0, 0, 0], 5)  # a piece of a target, tracked
+    for i in range(5, 10):  # then the whole target around it
+        tracks = mot.update(i * 10_000, np.array([[80, 80, 100, 100]], np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
+    assert tracks[0].box == pytest.approx((80, 80, 100, 100))
+
+
 def test_association_lets_go_of_a_target_leaving_the_image() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [330, 100, 16, 20], [0, 0, 0, 0], 5)

@@ -12,7 +12,9 @@ knew it was lost. Here:
   side is set against the detection's edge there; where that says nothing they move by prediction,
   nudged by a mean-shift `refine`;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
-  to be one target (they share a detection and move together) merge into the oldest;
+  to be one target (they share a detection and move together) merge into the oldest, and a track
+  left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
+  takes that detection whole;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
   prediction before `forget_after_us`.
 
@@ -150,16 +152,22 @@ class MultiObjectTracker:
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
         # tracks are one target seen in pieces before: merge those, refine the rest
         shared: dict[int, list[int]] = {}
+        adopted: dict[int, int] = {}
         for di in range(len(dets)):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)]
             if len(inside) >= 2:
                 members = self._merge_alike(t_us, inside)
                 if len(members) >= 2:
                     shared[di] = members
+                else:  # one target after all, whose box was a piece or a remnant of it: it takes the detection
+                    adopted[members[0]] = di
         in_shared = {ti for members in shared.values() for ti in members}
         live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]
-        assigned = self._match(pred, dets, inter, in_shared, set(shared))
-        used = set(assigned.values()) | set(shared)
+        assigned = self._match(pred, dets, inter, in_shared | set(adopted), set(shared) | set(adopted.values()))
+        used = set(assigned.values()) | set(shared) | set(adopted.values())
+        for ti, di in adopted.items():
+            tr = self.tracks[ti]
+            tr.box, tr.t_us, tr.last_seen_us = dets[di], t_us, t_us
         # fragments: small detections mostly inside a track's prediction join its measurement
         pieces: dict[int, list[int]] = {ti: [di] for ti, di in assigned.items()}
         for di, det in enumerate(dets):
@@ -181,7 +189,7 @@ class MultiObjectTracker:
                 self._coast(self.tracks[ti], box, axes, t_us, refine)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
-            if ti not in pieces and ti not in in_shared and tr.state != _GONE:
+            if ti not in pieces and ti not in in_shared and ti not in adopted and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
         for di, det in enumerate(dets):
