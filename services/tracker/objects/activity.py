@@ -3,13 +3,12 @@
 A target that stops leaves its decayed image to fade over a few tau, and the boxes detected in the
 fading image shrink towards the pixels that fired most: a track corrected by them slides off its
 still target. The count of new events in a detection tells a fading one from a moving one. Counts
-are kept on a grid of small cells, so counting costs one pass over the events and a box's count is
-four reads of an integral image.
+are kept on a grid of small cells, so counting costs one pass over the events and a box's count a
+sum over its few cells.
 """
 
 from __future__ import annotations
 
-import cv2
 import numba
 import numpy as np
 
@@ -17,34 +16,43 @@ import numpy as np
 class FreshCounts:
     """Counts the events accepted since the last `take`, per `cell_px` square."""
 
-    def __init__(self, width: int, height: int, cell_px: int = 4) -> None:
-        self.cell = cell_px
-        self.counts = np.zeros((-(-height // cell_px), -(-width // cell_px)), np.float64)
+    def __init__(self, width: int, height: int, cell_shift: int = 2) -> None:
+        self.shift = cell_shift  # cells of 2**shift pixels
+        cell = 1 << cell_shift
+        self.counts = np.zeros((-(-height // cell), -(-width // cell)), np.int32)
 
     def accept(self, events: np.ndarray) -> None:
         if len(events):
-            _count(self.counts, events["x"], events["y"], self.cell)
+            _count(self.counts, events["x"], events["y"], self.shift)
 
     def take(self, boxes: np.ndarray) -> np.ndarray:
-        """New events in each box (N x 4: x, y, w, h; cells it touches), then the counts restart."""
-        integral = cv2.integral(self.counts)
-        rows, cols = self.counts.shape
-        b = np.asarray(boxes, np.float64).reshape(-1, 4)
-        x0 = np.clip(np.floor(b[:, 0] / self.cell), 0, cols).astype(np.int64)
-        y0 = np.clip(np.floor(b[:, 1] / self.cell), 0, rows).astype(np.int64)
-        x1 = np.clip(np.ceil((b[:, 0] + b[:, 2]) / self.cell), 0, cols).astype(np.int64)
-        y1 = np.clip(np.ceil((b[:, 1] + b[:, 3]) / self.cell), 0, rows).astype(np.int64)
-        self.counts[:] = 0
-        return integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+        """New events in each box (N x 4: x, y, w, h; the cells it touches), then the counts restart."""
+        return _take(self.counts, np.asarray(boxes, np.float32).reshape(-1, 4), self.shift)
 
     def reset(self) -> None:
         self.counts[:] = 0
 
 
 @numba.njit(cache=True, nogil=True)
-def _count(counts, xs, ys, cell):  # noqa: ANN001, ANN202 - numba kernel
+def _count(counts, xs, ys, shift):  # noqa: ANN001, ANN202 - numba kernel
     rows, cols = counts.shape
     for i in range(len(xs)):
-        cx, cy = xs[i] // cell, ys[i] // cell
+        cx, cy = np.int32(xs[i]) >> shift, np.int32(ys[i]) >> shift
         if cx < cols and cy < rows:
-            counts[cy, cx] += 1.0
+            counts[cy, cx] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _take(counts, boxes, shift):  # noqa: ANN001, ANN202 - numba kernel
+    rows, cols = counts.shape
+    cell = 1 << shift
+    out = np.zeros(len(boxes), np.float64)
+    for k in range(len(boxes)):
+        x0, y0 = max(int(np.floor(boxes[k, 0] / cell)), 0), max(int(np.floor(boxes[k, 1] / cell)), 0)
+        x1 = min(int(np.ceil((boxes[k, 0] + boxes[k, 2]) / cell)), cols)
+        y1 = min(int(np.ceil((boxes[k, 1] + boxes[k, 3]) / cell)), rows)
+        for cy in range(y0, y1):
+            for cx in range(x0, x1):
+                out[k] += counts[cy, cx]
+    counts[:] = 0
+    return out
