@@ -55,6 +55,9 @@ class AssociationParams:
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
+    # a track left alone in a detection much bigger than itself takes it whole; off where detections
+    # are grown from the tracks' own predictions (CamShift), which would feed a track its own growth
+    take_whole: bool = True
 
 
 @dataclass
@@ -159,7 +162,7 @@ class MultiObjectTracker:
                 members = self._merge_alike(t_us, inside)
                 if len(members) >= 2:
                     shared[di] = members
-                else:  # one target after all, whose box was a piece or a remnant of it: it takes the detection
+                elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
                     adopted[members[0]] = di
         in_shared = {ti for members in shared.values() for ti in members}
         live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]

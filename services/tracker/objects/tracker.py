@@ -54,7 +54,7 @@ class TrackerParams:
 METHODS: dict[str, TrackerParams] = {
     "contour": TrackerParams(),
     "adaptive": TrackerParams(frames="adaptive"),
-    "camshift": TrackerParams(detector="camshift"),
+    "camshift": TrackerParams(detector="camshift", association=AssociationParams(take_whole=False)),
     "corner": TrackerParams(detector="corner"),
     "keyevents": TrackerParams(max_events=1),
 }
