@@ -3,10 +3,10 @@
 The drone report (seed 003) lost slow targets, locked onto noise once its target had gone and never
 knew it was lost. Here:
 - a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
-- a target that stops is held where it stopped: once its detection has far fewer new events than
-  usual (it is only the fading image of the target), not when the detection has gone; and a target hidden behind
-  another coasts at its velocity, both still `TRACKED` for `hold_us`; one that leaves the image is
-  let go at once;
+- a target that stops is held where it stopped, from the moment its detection has far fewer new
+  events than usual (it is only the fading image of the target), not once the detection has gone;
+  a target hidden behind another coasts at its velocity; both stay `TRACKED` for `hold_us`; one
+  that leaves the image is let go at once;
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
   onto the merged blob: the detection is the union of their targets, so the outermost track on each
   side is set against the detection's edge there; where that says nothing they move by prediction,
@@ -155,7 +155,7 @@ class MultiObjectTracker:
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
         # tracks are one target seen in pieces before: merge those, refine the rest
         shared: dict[int, list[int]] = {}
-        adopted: dict[int, int] = {}
+        whole: dict[int, int] = {}
         for di in range(len(dets)):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)]
             if len(inside) >= 2:
@@ -163,12 +163,12 @@ class MultiObjectTracker:
                 if len(members) >= 2:
                     shared[di] = members
                 elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
-                    adopted[members[0]] = di
+                    whole[members[0]] = di
         in_shared = {ti for members in shared.values() for ti in members}
         live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]
-        assigned = self._match(pred, dets, inter, in_shared | set(adopted), set(shared) | set(adopted.values()))
-        used = set(assigned.values()) | set(shared) | set(adopted.values())
-        for ti, di in adopted.items():
+        assigned = self._match(pred, dets, inter, in_shared | set(whole), set(shared) | set(whole.values()))
+        used = set(assigned.values()) | set(shared) | set(whole.values())
+        for ti, di in whole.items():
             tr = self.tracks[ti]
             tr.box, tr.t_us, tr.last_seen_us = dets[di], t_us, t_us
         # fragments: small detections mostly inside a track's prediction join its measurement
@@ -192,7 +192,7 @@ class MultiObjectTracker:
                 self._coast(self.tracks[ti], box, axes, t_us, refine)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
-            if ti not in pieces and ti not in in_shared and ti not in adopted and tr.state != _GONE:
+            if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
         for di, det in enumerate(dets):
