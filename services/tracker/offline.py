@@ -11,10 +11,10 @@ from tqdm import tqdm
 from services.camera.formats import FormatError, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.tracker.evaluation import evaluate
+from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
 
 CSV_HEADER = "t_us,id,x,y,w,h,score"  # DESIGN.md section 7
-TRACKED = 1  # the track state written out: confirmed, seen now
 
 
 def track(src: Path, out: Path, params: TrackerParams | None = None, progress: bool = True) -> dict[str, Any]:
@@ -51,7 +51,7 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
 
 def _rows(tracker: ObjectTracker, t_us: int) -> np.ndarray:
     ts = tracker.generate(t_us)
-    keep = ts.states == TRACKED
+    keep = ts.states == TRACKED  # confirmed tracks only
     n = int(keep.sum())
     return np.column_stack([np.full(n, t_us), ts.ids[keep], ts.boxes[keep], ts.scores[keep]]).astype(np.float64)
 
