@@ -42,6 +42,22 @@ def test_misses_false_boxes_shifts_stale_frames_and_id_switches_are_counted() ->
     assert evaluate(np.zeros((0, 6)), truth).op50 == 0.0
 
 
+
+def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot() -> None:
+    # two targets one on top of the other; track 5 always on object 1, track 6 between them, nearer
+    # object 1 at odd frames: Hungarian alone would swap the pairs every frame, CLEAR MOT keeps them
+    k = np.arange(20)
+    truth = np.concatenate([np.c_[k * 20_000, np.full(20, obj), np.full(20, x), np.full(20, 20.0),
+                                  np.full(20, 40.0), np.full(20, 40.0)] for obj, x in ((1, 0.0), (2, 8.0))])
+    near = np.where(k % 2, 2.0, 6.0)
+    pred = np.concatenate([truth[:20].copy(), np.c_[truth[:20, :2], near, truth[:20, 3:]]])
+    pred[:20, 1], pred[20:, 1] = 5, 6
+    pred[:20, 2] = np.where(k % 2, 3.0, 0.0)
+    s = evaluate(pred, truth)
+    assert s.id_switches == 0 and s.op50 == 1.0
+    pred[20:, 1] = np.where(k >= 10, 9, 6)  # the second track changes id once
+    assert evaluate(pred, truth).id_switches == 1
+
 def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     h5, csv = tmp_path / "o.h5", tmp_path / "tracks.csv"
     subprocess.run(etam_argv("sim", "objects", "--out", str(h5), "--duration", "4", "--seed", "3", "--json"),

@@ -1,8 +1,10 @@
 """Tracking accuracy against ground-truth boxes (pure numpy): what `etam eval tracking` reports.
 
 Boxes are rows (t_us, id, x, y, w, h). Each truth frame is compared with the latest predicted
-frame at or before it (no older than `max_age_us`); boxes are matched one to one by IoU
-(Hungarian). Figures:
+frame at or before it (no older than `max_age_us`); boxes are matched one to one by IoU as CLEAR
+MOT does (and py-motmetrics): a truth object keeps the predicted id it last matched while their
+IoU stays >= 0.5, the rest are matched by Hungarian on IoU. Without that, two tracks on one pair
+of overlapping targets swap matches from frame to frame and count as switches. Figures:
 - OP50 / OP75: share of truth boxes whose match has IoU >= 0.5 / 0.75;
 - success AUC: the mean, over IoU thresholds 0, 0.05, ..., 1, of the share matched above it;
 - precision@20: share of truth boxes whose match's centre is within 20 px;
@@ -46,6 +48,25 @@ def _frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     return times, np.split(rows, starts[1:]) if len(rows) else []
 
 
+def _match(objs: np.ndarray, idents: np.ndarray, overlap: np.ndarray,
+           last_match: dict[int, int]) -> list[tuple[int, int]]:
+    """Pairs (truth row, predicted row) with some overlap: each object's last matched id first, if
+    they still overlap by IoU >= 0.5, then Hungarian on IoU for the rest."""
+    pairs = []
+    col = {int(ident): c for c, ident in enumerate(idents)}
+    for r, obj in enumerate(objs):
+        c = col.get(last_match.get(int(obj), -1))
+        if c is not None and overlap[r, c] >= 0.5:
+            pairs.append((r, c))
+    rows = np.setdiff1d(np.arange(len(objs)), [r for r, _ in pairs])
+    cols = np.setdiff1d(np.arange(len(idents)), [c for _, c in pairs])
+    if len(rows) and len(cols):
+        sub = overlap[np.ix_(rows, cols)]
+        pairs += [(int(rows[r]), int(cols[c])) for r, c in zip(*linear_sum_assignment(-sub), strict=True)
+                  if sub[r, c] > 0]
+    return pairs
+
+
 def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> TrackingScores:
     """Scores of predicted rows against truth rows (both N x 6: t_us, id, x, y, w, h)."""
     pred, truth = np.asarray(pred, np.float64).reshape(-1, 6), np.asarray(truth, np.float64).reshape(-1, 6)
@@ -63,21 +84,17 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> T
         best = np.zeros(len(gt))
         err = np.full(len(gt), np.inf)
         matched_pred = np.zeros(len(pr), bool)
-        if len(pr):
-            rows, cols = linear_sum_assignment(-overlap)
-            for r, c in zip(rows, cols, strict=True):
-                if overlap[r, c] <= 0:
-                    continue
-                best[r] = overlap[r, c]
-                centre_gt = gt[r, 2:4] + gt[r, 4:6] / 2
-                centre_pr = pr[c, 2:4] + pr[c, 4:6] / 2
-                err[r] = float(np.hypot(*(centre_gt - centre_pr)))
-                if overlap[r, c] >= 0.5:
-                    matched_pred[c] = True
-                    obj, ident = int(gt[r, 1]), int(pr[c, 1])
-                    if obj in last_match and last_match[obj] != ident:
-                        switches += 1
-                    last_match[obj] = ident
+        for r, c in _match(gt[:, 1], pr[:, 1], overlap, last_match):
+            best[r] = overlap[r, c]
+            centre_gt = gt[r, 2:4] + gt[r, 4:6] / 2
+            centre_pr = pr[c, 2:4] + pr[c, 4:6] / 2
+            err[r] = float(np.hypot(*(centre_gt - centre_pr)))
+            if overlap[r, c] >= 0.5:
+                matched_pred[c] = True
+                obj, ident = int(gt[r, 1]), int(pr[c, 1])
+                if obj in last_match and last_match[obj] != ident:
+                    switches += 1
+                last_match[obj] = ident
         ious.extend(best.tolist())
         centre_err.extend(err.tolist())
         false_boxes += int((~matched_pred).sum())
