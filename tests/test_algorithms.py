@@ -12,6 +12,7 @@ from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
 from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, iou
+from services.tracker.objects.layout import LayoutParams, fit_layout
 
 
 def _events(ts: list[int]) -> np.ndarray:
@@ -131,11 +132,14 @@ def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
     assert tracks[0].box == pytest.approx((80, 80, 100, 100))
 
 
-def test_association_lets_go_of_a_target_leaving_the_image() -> None:
+def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_comes_back() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [330, 100, 16, 20], [0, 0, 0, 0], 5)
     tracks = mot.update(60_000, np.zeros((0, 4), np.float32))
     assert tracks[0].state == LOST
+    # back through the same border, as tall, 25 px lower; its width is still cut by the border
+    tracks = mot.update(500_000, np.array([[340, 125, 6, 21]], np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:
@@ -235,13 +239,36 @@ def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:
         SimParams.parse(["contrast=high"])
 
 
-def test_tracks_sharing_a_blob_follow_its_edges() -> None:
+def _blob_image(boxes: list[list[float]], seed: int = 0) -> np.ndarray:
+    """A decayed image where half the pixels of each box fired recently (textured targets)."""
+    img = np.zeros((260, 346), np.float32)
+    rng = np.random.default_rng(seed)
+    for x, y, w, h in boxes:
+        patch = img[int(y):int(y + h), int(x):int(x + w)]
+        patch[rng.random(patch.shape) < 0.5] = 1.0
+    return img
+
+
+def test_layout_places_boxes_of_known_size_on_a_merged_blob() -> None:
+    truth = [[100, 80, 40, 50], [125, 100, 40, 40]]  # overlapping: one blob
+    img = _blob_image(truth)
+    pred = np.float32([[96, 84, 40, 50], [129, 96, 40, 40]])  # each 4 px off on both axes
+    placed = fit_layout(img, pred, LayoutParams())
+    assert placed[:, 2:].tolist() == pred[:, 2:].tolist()  # sizes kept
+    np.testing.assert_allclose(placed[:, :2], np.float32(truth)[:, :2], atol=1)
+    inner = np.float32([[100, 80, 40, 50], [110, 90, 12, 12]])  # wholly inside the first: nothing to say
+    np.testing.assert_allclose(fit_layout(_blob_image(truth[:1]), inner, LayoutParams())[1], inner[1])
+
+
+def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45
         a_x, b_x = (40 + 3 * i if i < 45 else 175 + 0.5 * (i - 45)), 200
+        img = _blob_image([[a_x, 100, 30, 30], [b_x, 100, 30, 30]], seed=i)
         boxes = [[a_x, 100, 30, 30], [b_x, 100, 30, 30]] if b_x - a_x > 30 else [[a_x, 100, b_x + 30 - a_x, 30]]
-        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
+                            layout=lambda preds, img=img: fit_layout(img, preds, LayoutParams()))
     by_id = {t.ident: t for t in tracks}
     assert sorted(by_id) == [1, 2]
-    assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # at the blob's left edge, not where its speed says
+    assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # on its events, not where its speed says
     assert by_id[2].box[0] == pytest.approx(b_x, abs=2) and by_id[1].box[2] == pytest.approx(30, abs=3)

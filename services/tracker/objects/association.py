@@ -6,11 +6,10 @@ knew it was lost. Here:
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone;
   a target hidden behind another coasts at its velocity; both stay `TRACKED` for `hold_us`; one
-  that leaves the image is let go at once;
+  that leaves the image is lost, and found again under its id if a target of its size comes back
+  through the same border near where it left;
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
-  onto the merged blob: the detection is the union of their targets, so the outermost track on each
-  side is set against the detection's edge there; where that says nothing they move by prediction,
-  nudged by a mean-shift `refine`;
+  onto the merged blob, and a `layout` places them on its events (see `layout.py`);
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection and move together) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
@@ -34,7 +33,7 @@ TENTATIVE, TRACKED, LOST = 0, 1, 2
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
-Refine = Callable[[np.ndarray], np.ndarray]  # a predicted box -> the box moved onto the events
+Layout = Callable[[np.ndarray], np.ndarray]  # predicted boxes (K x 4) -> the boxes placed on the events
 
 
 @dataclass
@@ -48,7 +47,6 @@ class AssociationParams:
     forget_after_us: int = 2_000_000  # a lost track unseen this long is forgotten
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
-    refine_gain: float = 0.3  # weight of the mean-shift correction of tracks in a shared detection
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
     same_velocity_px_s: float = 40.0  # tracks in one detection moving this alike are one target
     young_us: int = 300_000  # a track younger than this merges into an older one it shares with
@@ -112,28 +110,6 @@ def _union(boxes: list[Box]) -> Box:
     return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
 
 
-def _anchor(preds: list[Box], blob: Box) -> tuple[list[list[float]], list[list[bool]]]:
-    """Boxes of the tracks that share one detection, at their sizes, and which of their axes were
-    set. The detection is the union of the targets: on an axis where the tracks predicted outermost
-    on each side are side by side (they overlap on the other axis), each is moved to the detection's
-    edge on its side; elsewhere a track only stays inside the detection."""
-    out = [list(b) for b in preds]
-    anchored = [[False, False] for _ in preds]
-    for axis in (0, 1):  # x (box[0], width box[2]), then y (box[1], height box[3])
-        lo, size, other = axis, axis + 2, 1 - axis
-        first = min(range(len(out)), key=lambda i: out[i][lo])
-        last = max(range(len(out)), key=lambda i: out[i][lo] + out[i][size])
-        a, b = out[first], out[last]
-        beside = min(a[other] + a[other + 2], b[other] + b[other + 2]) > max(a[other], b[other])
-        edge_lo, edge_hi = blob[lo], blob[lo] + blob[size]
-        if first != last and beside:
-            a[lo], b[lo] = edge_lo, edge_hi - b[size]
-            anchored[first][axis] = anchored[last][axis] = True
-        for box in out:
-            box[lo] = min(max(box[lo], edge_lo), edge_hi - box[size])
-    return out, anchored
-
-
 class MultiObjectTracker:
     """Keeps tracks from successive detections; `update` returns the tracks to report."""
 
@@ -143,10 +119,11 @@ class MultiObjectTracker:
         self.tracks: list[Track] = []
         self._next_id = 1
 
-    def update(self, t_us: int, boxes: np.ndarray, refine: Refine | None = None,
-               fresh: np.ndarray | None = None) -> list[Track]:
-        """Tracks at `t_us` given the detections (N x 4 boxes) of that time and, if known, the new
-        events in each since the last update."""
+    def update(self, t_us: int, boxes: np.ndarray, fresh: np.ndarray | None = None,
+               layout: Layout | None = None) -> list[Track]:
+        """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known the new events
+        in each since the last update, and how to place tracks that share a detection (else they
+        move by prediction)."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
@@ -186,10 +163,12 @@ class MultiObjectTracker:
             if fresh is not None and self._fading(self.tracks[ti], float(sum(fresh[di] for di in members)), t_us):
                 continue
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
-        for di, members in shared.items():
-            boxes_in, anchored = _anchor([pred[ti] for ti in members], dets[di])
-            for ti, box, axes in zip(members, boxes_in, anchored, strict=True):
-                self._coast(self.tracks[ti], box, axes, t_us, refine)
+        for members in shared.values():
+            boxes_in = np.asarray([pred[ti] for ti in members], np.float32)
+            placed = layout(boxes_in) if layout is not None else boxes_in
+            for ti, box in zip(members, placed.tolist(), strict=True):
+                tr = self.tracks[ti]
+                tr.box, tr.t_us, tr.last_seen_us = (box[0], box[1], box[2], box[3]), t_us, t_us
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
@@ -238,6 +217,10 @@ class MultiObjectTracker:
                 overlap = inter[ti][di] / max(a[2] * a[3] + b[2] * b[3] - inter[ti][di], 1e-6)
                 if overlap >= p.min_iou:
                     cost = -overlap
+                elif lost and (offset := self._back_through(a, b)) is not None:
+                    if offset > gate:
+                        continue
+                    cost = offset / size
                 else:
                     ratio = b[2] * b[3] / _area(a)
                     dist = math.dist(_centre(a), _centre(b))
@@ -288,18 +271,6 @@ class MultiObjectTracker:
         if tr.hits >= p.confirm_hits:
             tr.state = TRACKED
 
-    def _coast(self, tr: Track, box: list[float], anchored: list[bool], t_us: int, refine: Refine | None) -> None:
-        """A track inside a shared detection: its anchored prediction, nudged towards its events on
-        the axes not anchored."""
-        if refine is not None and not all(anchored):
-            moved = refine(np.asarray(box, np.float32))
-            g = self.params.refine_gain
-            for axis in (0, 1):
-                if not anchored[axis]:
-                    box[axis] += g * (float(moved[axis]) - box[axis])
-        tr.box = (box[0], box[1], box[2], box[3])
-        tr.t_us = tr.last_seen_us = t_us
-
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
         """No detection: drop a tentative track after a while; let go of a track that left the
         image; coast one hidden behind an observed track; hold one that stopped."""
@@ -313,8 +284,8 @@ class MultiObjectTracker:
             if unseen_us > p.forget_after_us:
                 tr.state = _GONE
             return
-        if self._leaving(tr.box):
-            tr.state = LOST
+        if self._sides(tr.box):
+            tr.state, tr.vel = LOST, (0.0, 0.0)  # waits where it left, to be found again if it comes back
             return
         hidden = any(_overlap(pred, o) >= 0.5 * pred[2] * pred[3] for o in observed)
         if not hidden:
@@ -325,11 +296,25 @@ class MultiObjectTracker:
         if unseen_us > p.hold_us:
             tr.state = LOST
 
-    def _leaving(self, box: Box) -> bool:
-        """True if a box touches the image border (its target may have left): unseen, it is let go."""
+    def _sides(self, box: Box) -> int:
+        """The image borders a box touches (its target may be leaving or entering), as bits: left 1,
+        top 2, right 4, bottom 8."""
         if not self.width:
-            return False
-        return box[0] <= 1 or box[1] <= 1 or box[0] + box[2] >= self.width - 1 or box[1] + box[3] >= self.height - 1
+            return 0
+        return ((box[0] <= 1) | (box[1] <= 1) << 1 | (box[0] + box[2] >= self.width - 1) << 2
+                | (box[1] + box[3] >= self.height - 1) << 3)
+
+    def _back_through(self, left: Box, entering: Box) -> float | None:
+        """If a detection enters through the border a lost track left by, as tall as it was (through
+        the left or right border; as wide through the top or bottom; the clipped axis says nothing of
+        its size), how far along that border from where the track left; else None."""
+        sides = self._sides(left) & self._sides(entering)
+        if not sides:
+            return None
+        k = 1 if sides & 5 else 0  # the axis along the border: y for left/right, x for top/bottom
+        if not 0.67 < entering[k + 2] / max(left[k + 2], 1.0) < 1.5:
+            return None
+        return abs(_centre(left)[k] - _centre(entering)[k])
 
     def reset(self) -> None:
         self.tracks = []

@@ -23,7 +23,7 @@ from services.tracker.objects.association import LOST, AssociationParams, MultiO
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
 from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
-from services.tracker.objects.meanshift import mean_shift
+from services.tracker.objects.layout import LayoutParams, fit_layout
 from services.tracker.objects.sampling import key_events
 
 FRAMES = ("decay", "adaptive")
@@ -42,6 +42,7 @@ class TrackerParams:
     corners: CornerParams = field(default_factory=CornerParams)
     adaptive: AdaptiveParams = field(default_factory=AdaptiveParams)
     association: AssociationParams = field(default_factory=AssociationParams)
+    layout: LayoutParams = field(default_factory=LayoutParams)
 
     def __post_init__(self) -> None:
         if self.frames not in FRAMES:
@@ -66,7 +67,8 @@ def method_params(name: str) -> TrackerParams:
         raise ValueError(f"tracking method {name!r} is not one of {', '.join(METHODS)}")
     base = METHODS[name]
     return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
-                   adaptive=replace(base.adaptive), association=replace(base.association))
+                   adaptive=replace(base.adaptive), association=replace(base.association),
+                   layout=replace(base.layout))
 
 
 @dataclass
@@ -107,8 +109,8 @@ class ObjectTracker:
             self._accept_sampled()
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
-        tracks = self.association.update(t_us, boxes, refine=lambda box: mean_shift(image, box),
-                                         fresh=self.fresh.take(boxes))
+        tracks = self.association.update(t_us, boxes, fresh=self.fresh.take(boxes),
+                                         layout=lambda preds: fit_layout(image, preds, self.params.layout))
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
