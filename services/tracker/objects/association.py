@@ -130,7 +130,7 @@ class MultiObjectTracker:
         inter = [[_overlap(a, b) for b in dets] for a in pred]
         live = [tr.state != LOST for tr in self.tracks]
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
-        # tracks are one target seen in pieces before: merge those, refine the rest
+        # tracks are one target seen in pieces before: merge those, place the rest
         shared: dict[int, list[int]] = {}
         whole: dict[int, int] = {}
         for di in range(len(dets)):
