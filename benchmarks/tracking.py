@@ -25,7 +25,7 @@ from services.camera.formats import open_recording
 from services.camera.offline import simulate
 from services.camera.simulator import SimParams
 from services.tracker.offline import CSV_HEADER, eval_tracking, track
-from services.tracker.objects.tracker import METHODS, ObjectTracker, method_params
+from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params
 
 FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute")
 DV_BANDWIDTH_PX = 20
@@ -49,9 +49,8 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
             csv = Path(tmp) / f"dv{seed}.csv"
             _dv_track(h5, csv)
             scores["dv MeanShiftTracker"].append(eval_tracking(csv, h5))
-    default = next(iter(METHODS))
-    for seed, s in zip(seeds, scores[default], strict=True):
-        rows.append({"stage": "tracking accuracy", "method": default, "seed": seed, "duration_s": duration_s,
+    for seed, s in zip(seeds, scores[DEFAULT_METHOD], strict=True):
+        rows.append({"stage": "tracking accuracy", "method": DEFAULT_METHOD, "seed": seed, "duration_s": duration_s,
                      **{k: s[k] for k in FIGURES}})
     for method, per_seed in scores.items():
         mean = {k: float(np.mean([s[k] for s in per_seed])) for k in FIGURES}
@@ -110,7 +109,7 @@ def speed(quick: bool = False) -> list[dict]:
         for method in METHODS:
             rows.append(_time_tracker(method, packets, width, height, n_events, PACKET_US) | stream)
         windows, _, _ = _packets(h5, 15_000)
-        rows.append(_time_tracker(next(iter(METHODS)), windows, width, height, sum(len(w) for _, w in windows),
+        rows.append(_time_tracker(DEFAULT_METHOD, windows, width, height, sum(len(w) for _, w in windows),
                                   15_000) | stream)
         elapsed = _dv_track(h5, Path(tmp) / "dv.csv")
         rows.append({"stage": "tracker speed", "method": "dv MeanShiftTracker", "window_ms": PACKET_US / 1e3,

@@ -17,6 +17,7 @@ from zenoh import ZError
 from services import config
 from services.camera.formats import FormatError
 from services.camera.sources import SourceError
+from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, method_params
 
 log = logging.getLogger("etam")
 
@@ -75,14 +76,13 @@ def _cmd_camera(args: argparse.Namespace) -> int:
 
 
 def _cmd_tracker(args: argparse.Namespace) -> int:
-    from services.tracker.objects.tracker import method_params
     from services.tracker.service import ObjectSizes, TrackerService
 
     try:
-        params, sizes = method_params(args.method), ObjectSizes.parse(args.object_size or [])
+        sizes = ObjectSizes.parse(args.object_size or [])
     except ValueError as exc:
         raise config.ConfigError(str(exc)) from None
-    return TrackerService(_service_options(args, "objects"), params, sizes=sizes).run()
+    return TrackerService(_service_options(args, "objects"), method_params(args.method), sizes=sizes).run()
 
 
 def _cmd_web(args: argparse.Namespace) -> int:
@@ -198,13 +198,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     if not Path(args.input).exists():
         raise config.ConfigError(f"{args.input}: no such file")
-    from services.tracker.objects.tracker import method_params
-
-    try:
-        params = method_params(args.method)
-    except ValueError as exc:
-        raise config.ConfigError(str(exc)) from None
-    summary = track(Path(args.input), Path(args.out), params, progress=not args.json)
+    summary = track(Path(args.input), Path(args.out), method_params(args.method), progress=not args.json)
     if args.snapshots:
         from services.tracker.offline import read_tracks, snapshots
 
@@ -264,7 +258,6 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-METHOD_CHOICES = ("contour", "adaptive", "camshift", "corner", "keyevents")
 METHOD_HELP = ("tracking method: contour (default; decayed image, occupancy clusters), adaptive (time/count "
                "window chosen by frame quality), camshift (CamShift on edges), corner (corner clusters), "
                "keyevents (contour on key events)")
@@ -314,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("tracker", help="run the object tracker service alone")
     _zenoh_flags(p)
     p.add_argument("--name", help="tracker name in keys (default objects)")
-    p.add_argument("--method", default="contour", choices=METHOD_CHOICES, help=METHOD_HELP)
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=tuple(METHODS), help=METHOD_HELP)
     p.add_argument("--object-size", action="append", metavar="[ID=]M",
                    help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
                         "M for every target, ID=M for one track id; repeatable")
@@ -360,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="track moving objects in a recording into a CSV (t_us,id,x,y,w,h,score)")
     p.add_argument("input", help="any readable event file")
     p.add_argument("--out", default="tracks.csv", help="tracks CSV to write (default tracks.csv)")
-    p.add_argument("--method", default="contour", choices=METHOD_CHOICES, help=METHOD_HELP)
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=tuple(METHODS), help=METHOD_HELP)
     p.add_argument("--snapshots", metavar="FILE.png", help="also draw the boxes on six event frames into a PNG")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)

@@ -92,10 +92,9 @@ class TrackerService(Service):
             if msg.stamp < stream.next_update_us:
                 continue
             tracks = stream.tracker.generate(msg.stamp)
-            xyz = self._positions(_camera(key), tracks, (msg.height, msg.width))
+            xyz, size_m = self._positions(_camera(key), tracks, (msg.height, msg.width))
             out.publish(Tracks(t=tracks.t_us, stamp=tracks.t_us, id=tracks.ids, box=tracks.boxes,
-                               score=tracks.scores, vel=tracks.vels, state=tracks.states, xyz=xyz,
-                               size_m=None if xyz is None else self._sizes(tracks).astype("<f4")))
+                               score=tracks.scores, vel=tracks.vels, state=tracks.states, xyz=xyz, size_m=size_m))
             # the next update on the update grid, skipping any slots this packet already passed
             step = int(self.params["update_us"])
             stream.next_update_us = max(stream.next_update_us + step, msg.stamp - msg.stamp % step + step)
@@ -135,22 +134,22 @@ class TrackerService(Service):
             except (MessageError, ValueError) as exc:
                 log.warning("ignoring depth image on %s: %s", key, exc)
 
-    def _sizes(self, tracks: TrackSet) -> np.ndarray:
-        return sizes_for(tracks.ids, self.sizes.default_m, self.sizes.per_id)
-
-    def _positions(self, cam: str, tracks: TrackSet, shape: tuple[int, int]) -> np.ndarray | None:
-        """xyz per track: from depth where the box has some, else from its known width; None when
-        neither a depth image nor any width is known, or the intrinsics are not."""
+    def _positions(self, cam: str, tracks: TrackSet,
+                   shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+        """xyz per track (from depth where the box has some, else from its known width) and the
+        widths used; None, None when neither a depth image nor any width is known, or the
+        intrinsics are not."""
         K = self.K.get(cam)
         depth = self.depth.get(cam, self.depth.get("*"))
         if K is None or (depth is None and self.sizes.default_m is None and not self.sizes.per_id):
-            return None
-        xyz = xyz_from_size(tracks.boxes, self._sizes(tracks), K)
+            return None, None
+        size_m = sizes_for(tracks.ids, self.sizes.default_m, self.sizes.per_id)
+        xyz = xyz_from_size(tracks.boxes, size_m, K)
         if depth is not None and depth.shape == shape:
             from_depth = xyz_from_depth(tracks.boxes, depth, K)
             known = np.isfinite(from_depth[:, 2])
             xyz[known] = from_depth[known]
-        return xyz.astype("<f4")
+        return xyz.astype("<f4"), size_m.astype("<f4")
 
     def _stream_for(self, key: str, msg: EventPacket) -> _Stream:
         """The stream of `key`, made anew for a new camera, a new sensor size, or time going back

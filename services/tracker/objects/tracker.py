@@ -51,7 +51,7 @@ class TrackerParams:
             raise ValueError(f"tracker detector {self.detector!r} is not one of {', '.join(DETECTORS)}")
 
 
-# the methods compared in `etam bench tracking`; the first is the default
+# the methods compared in `etam bench tracking`
 METHODS: dict[str, TrackerParams] = {
     "contour": TrackerParams(),
     "adaptive": TrackerParams(frames="adaptive"),
@@ -59,6 +59,7 @@ METHODS: dict[str, TrackerParams] = {
     "corner": TrackerParams(detector="corner"),
     "keyevents": TrackerParams(max_events=1),
 }
+DEFAULT_METHOD = "contour"
 
 
 def method_params(name: str) -> TrackerParams:
