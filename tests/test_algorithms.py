@@ -272,3 +272,32 @@ def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # on its events, not where its speed says
     assert by_id[2].box[0] == pytest.approx(b_x, abs=2) and by_id[1].box[2] == pytest.approx(30, abs=3)
+
+
+def test_cell_grid_kernels_equal_opencv() -> None:
+    """The cluster detector's grid steps give OpenCV's results exactly, borders included."""
+    import cv2
+
+    from services.tracker.objects import cells
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        rows, cols = (int(v) for v in rng.integers(1, 30, 2))
+        mask = (rng.random((rows, cols)) < rng.random()).astype(np.uint8)
+        n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        n2, labels, stats2 = cells.components(mask)
+        assert n2 == n and sorted(map(tuple, stats2[1:])) == sorted(map(tuple, stats[1:]))
+        for k in range(1, n2):
+            ys, xs = np.nonzero(labels == k)
+            assert (xs.min(), ys.min(), np.ptp(xs) + 1, np.ptp(ys) + 1, len(xs)) == tuple(stats2[k])
+        for size in (3, 5):
+            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+            assert np.array_equal(cells.close(mask, disc), cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc))
+            counts = rng.integers(0, 17, (rows, cols)).astype(np.int32)
+            blurred = cv2.blur(counts.astype(np.float32) / 16, (size, size))
+            assert np.array_equal(cells.dense(counts, size, 0.08 * size * size * 16), (blurred > 0.08).astype(np.uint8))
+        image = rng.random((rows * 4 - 1, cols * 4 - 3)).astype(np.float32)
+        full = np.zeros((rows * 4, cols * 4), np.float32)
+        full[:image.shape[0], :image.shape[1]] = image >= np.float32(0.5)
+        expected = full.reshape(rows, 4, cols, 4).sum(axis=(1, 3))
+        assert np.array_equal(cells.occupancy(image, 4, np.float32(0.5)), expected)

@@ -13,11 +13,14 @@ outermost `trim` share on each side.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numba
 import numpy as np
+
+from services.tracker.objects import cells
 
 
 @dataclass
@@ -34,65 +37,68 @@ class ClusterParams:
 
 def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
-    c = params.cell_px
-    occupancy = _cell_occupancy(image, c, params.active)
-    density = cv2.blur(occupancy, (params.window_cells, params.window_cells))
-    mask = (density > params.density).astype(np.uint8)
-    if params.close_cells > 1:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.close_cells, params.close_cells))
-        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    big = np.zeros(n, np.bool_)
-    big[1:] = stats[1:, cv2.CC_STAT_AREA] * c * c >= params.min_area_px
-    if not big.any():
-        return np.zeros((0, 4), np.float32)
-    boxes = _trimmed_boxes(labels, stats, big, c, image, np.float32(params.recent), params.trim)[big]
+    c, k = params.cell_px, params.window_cells
+    disc = _disc(params.close_cells) if params.close_cells > 1 else _disc(1)
+    return _detect(image, c, np.float32(params.active), k, params.density * k * k * c * c, disc,
+                   -(-params.min_area_px // (c * c)), np.float32(params.recent), params.trim)
+
+
+@numba.njit(cache=True, nogil=True)
+def _detect(image, cell, active, window, least, disc, min_cells, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+    """All of `detect_clusters` in one call: an update's Python overhead was as long as its kernels."""
+    mask = cells.dense(cells.occupancy(image, cell, active), window, least)
+    if disc.size > 1:
+        mask = cells.close(mask, disc)
+    n, labels, stats = cells.components(mask)
+    big = stats[:, cells.AREA] >= min_cells
+    big[0] = False
+    boxes = _trimmed_boxes(labels, stats, big, cell, image, recent, trim)[big]
     return boxes[(boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
 
 
-def _cell_occupancy(image: np.ndarray, cell: int, active: float) -> np.ndarray:
-    """Share of the pixels of each `cell` x `cell` square whose weight reaches `active` (SIMD
-    threshold and area resize; the image is padded to whole cells)."""
-    h, w = image.shape
-    _, mask = cv2.threshold(image, np.nextafter(np.float32(active), np.float32(0)), 1.0, cv2.THRESH_BINARY)
-    rows, cols = -(-h // cell), -(-w // cell)
-    if (rows * cell, cols * cell) != (h, w):
-        mask = cv2.copyMakeBorder(mask, 0, rows * cell - h, 0, cols * cell - w, cv2.BORDER_CONSTANT, value=0)
-    return cv2.resize(mask, (cols, rows), interpolation=cv2.INTER_AREA)
+@functools.cache
+def _disc(size: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
 
 
 @numba.njit(cache=True, nogil=True)
 def _trimmed_boxes(labels, stats, keep, cell, image, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
     """Per kept cell label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h).
-    Only the pixels under each label's cell box are read."""
+    One pass reads only the pixels under labelled cells, into per-label column and row counts."""
     h, w = image.shape
     n = len(keep)
-    col = np.zeros(w, np.int32)
-    row = np.zeros(h, np.int32)
+    col = np.zeros((n, w), np.int32)
+    row = np.zeros((n, h), np.int32)
+    rows, cols = labels.shape
+    for cy in range(rows):
+        cell_row = labels[cy]
+        cx = 0
+        while cx < cols:  # runs of cells of one kept label, each read in tight loops along its rows
+            lab = cell_row[cx]
+            end = cx + 1
+            while end < cols and cell_row[end] == lab:
+                end += 1
+            if lab and keep[lab]:
+                x0, x1 = cx * cell, min(end * cell, w)
+                counts = col[lab]
+                for y in range(cy * cell, min(cy * cell + cell, h)):
+                    src = image[y]
+                    found = 0
+                    for x in range(x0, x1):
+                        hit = src[x] >= recent
+                        counts[x] += hit
+                        found += hit
+                    row[lab, y] += found
+            cx = end
     out = np.zeros((n, 4), np.float32)
     for lab in range(1, n):
-        if not keep[lab]:
-            continue
-        col[:] = 0
-        row[:] = 0
-        cx0, cy0, cw, ch = stats[lab, 0], stats[lab, 1], stats[lab, 2], stats[lab, 3]
-        for y in range(cy0 * cell, min((cy0 + ch) * cell, h)):
-            cell_row = labels[y // cell]
-            src = image[y]
-            for cx in range(cx0, cx0 + cw):
-                if cell_row[cx] != lab:
-                    continue
-                for x in range(cx * cell, min(cx * cell + cell, w)):
-                    if src[x] >= recent:
-                        col[x] += 1
-                        row[y] += 1
-        total = col.sum()
-        if total == 0:
+        total = col[lab].sum()
+        if not keep[lab] or total == 0:
             continue
         cut = trim * total
-        lo, hi = _quantiles(col, cut)
+        lo, hi = _quantiles(col[lab], cut)
         out[lab, 0], out[lab, 2] = lo, hi + 1 - lo
-        lo, hi = _quantiles(row, cut)
+        lo, hi = _quantiles(row[lab], cut)
         out[lab, 1], out[lab, 3] = lo, hi + 1 - lo
     return out
 
