@@ -260,6 +260,21 @@ def test_layout_places_boxes_of_known_size_on_a_merged_blob() -> None:
     np.testing.assert_allclose(fit_layout(_blob_image(truth[:1]), inner, LayoutParams())[1], inner[1])
 
 
+def test_layout_mends_a_wrong_size_slowly_and_keeps_right_ones() -> None:
+    truth = [[100, 80, 40, 50], [138, 80, 40, 50]]  # side by side: one blob
+    img = _blob_image(truth)
+    boxes = np.float32([[100, 80, 40, 80], [138, 80, 40, 50]])  # the first held a trail: 30 px too tall
+    own = boxes[:, 2:].copy()
+    first = fit_layout(img, boxes, LayoutParams(), own)
+    assert 78 <= first[0, 3] < 80  # at most a pixel an edge a round
+    for _ in range(20):
+        boxes = fit_layout(img, boxes, LayoutParams(), own)
+    assert boxes[0, 3] <= 65 and boxes[0, 1] == pytest.approx(80, abs=1)  # most of the way to the truth
+    np.testing.assert_allclose(boxes[1], truth[1], atol=1)
+    kept = fit_layout(img, np.float32(truth), LayoutParams(resize_px=0))
+    np.testing.assert_allclose(kept[:, 2:], np.float32(truth)[:, 2:])
+
+
 def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45
@@ -267,7 +282,7 @@ def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
         img = _blob_image([[a_x, 100, 30, 30], [b_x, 100, 30, 30]], seed=i)
         boxes = [[a_x, 100, 30, 30], [b_x, 100, 30, 30]] if b_x - a_x > 30 else [[a_x, 100, b_x + 30 - a_x, 30]]
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
-                            layout=lambda preds, img=img: fit_layout(img, preds, LayoutParams()))
+                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
     by_id = {t.ident: t for t in tracks}
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # on its events, not where its speed says

@@ -9,7 +9,8 @@ knew it was lost. Here:
   that leaves the image is lost, and found again under its id if a target of its size comes back
   through the same border near where it left;
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
-  onto the merged blob, and a `layout` places them on its events (see `layout.py`);
+  onto the merged blob (up to slow corrections towards the events), and a `layout` places them
+  on its events (see `layout.py`);
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection and move together) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
@@ -33,7 +34,8 @@ TENTATIVE, TRACKED, LOST = 0, 1, 2
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
-Layout = Callable[[np.ndarray], np.ndarray]  # predicted boxes (K x 4) -> the boxes placed on the events
+# predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2) -> the boxes placed on the events
+Layout = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -70,6 +72,7 @@ class Track:
     state: int = TENTATIVE
     score: float = 0.3
     rate: float = 0.0  # usual new events per update in its detection, while it moves
+    own_size: tuple[float, float] | None = None  # w, h when it last had a detection of its own
 
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
@@ -165,7 +168,8 @@ class MultiObjectTracker:
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         for members in shared.values():
             boxes_in = np.asarray([pred[ti] for ti in members], np.float32)
-            placed = layout(boxes_in) if layout is not None else boxes_in
+            own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
+            placed = layout(boxes_in, own) if layout is not None else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
                 tr = self.tracks[ti]
                 tr.box, tr.t_us, tr.last_seen_us = (box[0], box[1], box[2], box[3]), t_us, t_us
@@ -266,6 +270,7 @@ class MultiObjectTracker:
             w, h = (1 - g) * tr.box[2] + g * box[2], (1 - g) * tr.box[3] + g * box[3]
             tr.box = (cx - w / 2, cy - h / 2, w, h)
         tr.hits += 1
+        tr.own_size = tr.box[2], tr.box[3]
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:

@@ -7,6 +7,10 @@ already explains, and as little empty image: a pixel gains `1 - density` if it f
 loses `density` if not. Pixels under another box count for nothing, so a target partly hidden
 behind a nearer one is placed by the part of it still in view, and one wholly inside another's box
 stays at its prediction, held there by a small pull.
+
+A size known from before the merge can be wrong (two targets that came in together, a box that
+held a trail), and a blob may last seconds; so each edge may also move a pixel a round, against a
+pull towards the size the track last measured on its own, which keeps right sizes from drifting.
 """
 
 from __future__ import annotations
@@ -25,10 +29,14 @@ class LayoutParams:
     reach_px: int = 6  # each box moves at most this far from its prediction per round
     pull: float = 0.2  # cost of a box's squared shift from its prediction, per px^2
     rounds: int = 2
+    resize_px: int = 1  # each edge moves at most this far per round (0: sizes kept)
+    size_pull: float = 0.2  # cost of a relative size change from the track's own, per px^2 of box
 
 
-def fit_layout(image: np.ndarray, boxes: np.ndarray, params: LayoutParams) -> np.ndarray:
-    """The boxes (K x 4: x, y, w, h, sizes kept) moved onto the recent pixels of a decayed image."""
+def fit_layout(image: np.ndarray, boxes: np.ndarray, params: LayoutParams,
+               sizes: np.ndarray | None = None) -> np.ndarray:
+    """The boxes (K x 4: x, y, w, h) moved onto the recent pixels of a decayed image, their sizes
+    pulled towards `sizes` (K x 2: w, h; the boxes' own if not given)."""
     rows = np.asarray(boxes, np.float32).reshape(-1, 4).tolist()
     h_img, w_img = image.shape
     margin = params.reach_px * params.rounds
@@ -41,22 +49,26 @@ def fit_layout(image: np.ndarray, boxes: np.ndarray, params: LayoutParams) -> np
     pred = np.array([(r[0] - x0, r[1] - y0) for r in rows])
     start = [(round(r[0]) - x0, round(r[1]) - y0) for r in rows]
     pos = np.array(start, np.int64)
-    size = np.array([(max(round(r[2]), 1), max(round(r[3]), 1)) for r in rows], np.int64)
+    was_size = [(max(round(r[2]), 1), max(round(r[3]), 1)) for r in rows]
+    size = np.array(was_size, np.int64)
+    own = np.maximum(np.asarray(size if sizes is None else sizes, np.float64).reshape(-1, 2), 1.0)
     _fit(image[y0:y1, x0:x1], np.float32(params.recent), np.float32(params.density), pos, size, pred,
-         params.reach_px, params.pull, params.rounds)
-    for r, (px, py), was in zip(rows, pos.tolist(), start, strict=True):
-        if (px, py) != was:  # boxes left where they were keep their sub-pixel prediction
+         params.reach_px, params.pull, params.rounds, own, params.resize_px, params.size_pull)
+    for r, (px, py), (sw, sh), was, was_wh in zip(rows, pos.tolist(), size.tolist(), start, was_size, strict=True):
+        if (px, py) != was or (sw, sh) != was_wh:  # boxes left as they were keep their sub-pixel prediction
             r[0], r[1] = px + x0, py + y0
+        if (sw, sh) != was_wh:
+            r[2], r[3] = sw, sh
     return np.asarray(rows, np.float32)
 
 
 @numba.njit(cache=True, nogil=True)
-def _fit(region, recent, density, pos, size, pred, reach, pull, rounds):  # noqa: ANN001, ANN202 - numba kernel
-    """Coordinate ascent of the box positions `pos` (in place): each box in turn takes the shift
+def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, resize, size_pull):  # noqa: ANN001, ANN202 - numba kernel
+    """Coordinate ascent of the boxes `pos` and `size` (in place): each box in turn takes the shift
     within `reach` (and the region) that best covers the pixels no other box covers, less `pull`
-    times its squared distance from `pred`. One integral image of the gain serves every sum: what
-    the others cover is cut out by inclusion-exclusion over their intersections (rectangles), 2^(K-1)
-    sums per shift: cheap for the two to four targets one blob holds."""
+    times its squared distance from `pred`; then each of its edges the move within `resize` that
+    does, less `size_pull` times its squared relative size change from `own`, per px^2 of box.
+    One integral image of the gain serves every sum (see `_cover`)."""
     h, w = region.shape
     total = np.zeros((h + 1, w + 1), np.float64)
     for y in range(h):
@@ -66,6 +78,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds):  # noqa
             total[y + 1, x + 1] = total[y, x + 1] + run
     k_n = len(pos)
     others = np.empty(k_n - 1, np.int64)
+    rect = np.empty(4, np.int64)
     for _ in range(rounds):
         for k in range(k_n):
             m = 0
@@ -76,20 +89,45 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds):  # noqa
             best, bx, by = -np.inf, pos[k, 0], pos[k, 1]
             for ya in range(max(pos[k, 1] - reach, 0), min(pos[k, 1] + reach, h - size[k, 1]) + 1):
                 for xa in range(max(pos[k, 0] - reach, 0), min(pos[k, 0] + reach, w - size[k, 0]) + 1):
-                    score = 0.0
-                    for subset in range(1 << m):  # subset 0 is the box itself
-                        x0, y0, x1, y1, sign = xa, ya, xa + size[k, 0], ya + size[k, 1], 1.0
-                        for t in range(m):
-                            if subset >> t & 1:
-                                j = others[t]
-                                x0, y0 = max(x0, pos[j, 0]), max(y0, pos[j, 1])
-                                x1, y1 = min(x1, pos[j, 0] + size[j, 0]), min(y1, pos[j, 1] + size[j, 1])
-                                sign = -sign
-                        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
-                        if x1 > x0 and y1 > y0:
-                            score += sign * (total[y1, x1] - total[y0, x1] - total[y1, x0] + total[y0, x0])
                     ex, ey = xa - pred[k, 0], ya - pred[k, 1]
-                    score -= pull * (ex * ex + ey * ey)
+                    score = (_cover(total, pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
+                             - pull * (ex * ex + ey * ey))
                     if score > best:
                         best, bx, by = score, xa, ya
             pos[k, 0], pos[k, 1] = bx, by
+            rect[0], rect[1], rect[2], rect[3] = bx, by, bx + size[k, 0], by + size[k, 1]
+            for edge in range(4 if resize > 0 else 0):  # x0, y0, x1, y1
+                at, best, best_at = rect[edge], -np.inf, rect[edge]
+                for v in range(at - resize, at + resize + 1):
+                    rect[edge] = v
+                    bw, bh = rect[2] - rect[0], rect[3] - rect[1]
+                    if bw < 1 or bh < 1 or rect[0] < 0 or rect[1] < 0 or rect[2] > w or rect[3] > h:
+                        continue
+                    dw, dh = bw / own[k, 0] - 1.0, bh / own[k, 1] - 1.0
+                    score = (_cover(total, pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
+                             - size_pull * own[k, 0] * own[k, 1] * (dw * dw + dh * dh))
+                    if score > best:
+                        best, best_at = score, v
+                rect[edge] = best_at
+            pos[k, 0], pos[k, 1], size[k, 0], size[k, 1] = rect[0], rect[1], rect[2] - rect[0], rect[3] - rect[1]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cover(total, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202 - numba kernel
+    """The gain of the pixels of box (x0, y0)-(x1, y1) that none of the first `m` boxes of `others`
+    covers, from the integral image `total`: what they cover is cut out by inclusion-exclusion over
+    their intersections (rectangles), 2^m sums: cheap for the two to four targets a blob holds."""
+    h, w = total.shape[0] - 1, total.shape[1] - 1
+    score = 0.0
+    for subset in range(1 << m):  # subset 0 is the box itself
+        sx0, sy0, sx1, sy1, sign = x0, y0, x1, y1, 1.0
+        for t in range(m):
+            if subset >> t & 1:
+                j = others[t]
+                sx0, sy0 = max(sx0, pos[j, 0]), max(sy0, pos[j, 1])
+                sx1, sy1 = min(sx1, pos[j, 0] + size[j, 0]), min(sy1, pos[j, 1] + size[j, 1])
+                sign = -sign
+        sx0, sy0, sx1, sy1 = max(sx0, 0), max(sy0, 0), min(sx1, w), min(sy1, h)
+        if sx1 > sx0 and sy1 > sy0:
+            score += sign * (total[sy1, sx1] - total[sy0, sx1] - total[sy1, sx0] + total[sy0, sx0])
+    return score

@@ -110,8 +110,9 @@ class ObjectTracker:
             self._accept_sampled()
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
-        tracks = self.association.update(t_us, boxes, fresh=self.fresh.take(boxes),
-                                         layout=lambda preds: fit_layout(image, preds, self.params.layout))
+        tracks = self.association.update(
+            t_us, boxes, fresh=self.fresh.take(boxes),
+            layout=lambda preds, sizes: fit_layout(image, preds, self.params.layout, sizes))
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
