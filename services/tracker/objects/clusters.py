@@ -38,7 +38,7 @@ class ClusterParams:
 def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
     c, k = params.cell_px, params.window_cells
-    disc = _disc(params.close_cells) if params.close_cells > 1 else _disc(1)
+    disc = _disc(max(params.close_cells, 1))  # 1 x 1: no closing
     return _detect(image, c, np.float32(params.active), k, params.density * k * k * c * c, disc,
                    -(-params.min_area_px // (c * c)), np.float32(params.recent), params.trim)
 
