@@ -69,6 +69,8 @@ def _add(image, xs, ys, ts, t_now, weight_by_age, weights):  # noqa: ANN001, ANN
         age = max(t_now - ts[i], 0)
         if x < w and y < h and age < n_ages:
             image[y, x] += weight_by_age[age] * weights[i] if each else weight_by_age[age]
+
+
 @numba.njit(cache=True, nogil=True)
 def _decay(flat, factor, floor):  # noqa: ANN001, ANN202 - numba kernel
     for i in range(flat.size):

@@ -149,8 +149,7 @@ class MultiObjectTracker:
         assigned = self._match(pred, dets, inter, in_shared | set(whole), set(shared) | set(whole.values()))
         used = set(assigned.values()) | set(shared) | set(whole.values())
         for ti, di in whole.items():
-            tr = self.tracks[ti]
-            tr.box, tr.t_us, tr.last_seen_us = dets[di], t_us, t_us
+            self._place(self.tracks[ti], dets[di], t_us)
         # fragments: small detections mostly inside a track's prediction join its measurement
         pieces: dict[int, list[int]] = {ti: [di] for ti, di in assigned.items()}
         for di, det in enumerate(dets):
@@ -171,8 +170,7 @@ class MultiObjectTracker:
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
             placed = layout(boxes_in, own) if layout is not None else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
-                tr = self.tracks[ti]
-                tr.box, tr.t_us, tr.last_seen_us = (box[0], box[1], box[2], box[3]), t_us, t_us
+                self._place(self.tracks[ti], (box[0], box[1], box[2], box[3]), t_us)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
@@ -239,6 +237,12 @@ class MultiObjectTracker:
                 out[ti] = di
                 used_d.add(di)
         return out
+
+    @staticmethod
+    def _place(tr: Track, box: Box, t_us: int) -> None:
+        """The track set on a box without learning velocity or size from it (a detection it takes whole,
+        its place in a shared blob)."""
+        tr.box, tr.t_us, tr.last_seen_us = box, t_us, t_us
 
     def _fading(self, tr: Track, new_events: float, t_us: int) -> bool:
         """True, and the track held where it is, if its detection has far fewer new events than

@@ -52,7 +52,7 @@ def _detect(image, cell, active, window, least, disc, min_cells, recent, trim): 
     n, labels, stats = cells.components(mask)
     big = stats[:, cells.AREA] >= min_cells
     big[0] = False
-    boxes = _trimmed_boxes(labels, stats, big, cell, image, recent, trim)[big]
+    boxes = _trimmed_boxes(labels, big, cell, image, recent, trim)[big]
     return boxes[(boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
 
 
@@ -62,7 +62,7 @@ def _disc(size: int) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _trimmed_boxes(labels, stats, keep, cell, image, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+def _trimmed_boxes(labels, keep, cell, image, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
     """Per kept cell label, the box holding all but `trim` of its recent pixels on each side (x, y, w, h).
     One pass reads only the pixels under labelled cells, into per-label column and row counts."""
     h, w = image.shape
