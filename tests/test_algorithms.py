@@ -133,13 +133,26 @@ def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
 
 
 def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_comes_back() -> None:
+    """Seed 002's re-detection: a target back through the border it left by, with its size, gets its
+    id again wherever along that border it comes in; one of another size, or two alike, do not."""
+    none = np.zeros((0, 4), np.float32)
     mot = MultiObjectTracker(width=346, height=260)
-    _follow(mot, 0, [330, 100, 16, 20], [0, 0, 0, 0], 5)
-    tracks = mot.update(60_000, np.zeros((0, 4), np.float32))
-    assert tracks[0].state == LOST
-    # back through the same border, as tall, 25 px lower; its width is still cut by the border
-    tracks = mot.update(500_000, np.array([[340, 125, 6, 21]], np.float32))
+    _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)  # out through the right border
+    tracks = mot.update(100_000, none)
+    assert [(t.ident, t.state) for t in tracks] == [(1, LOST)]
+    tracks = _follow(mot, 300_000, [340, 180, 6, 21], [-2, 0, 2, 0], 5)  # back, 80 px lower, as tall
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
+    tracks = _follow(mot, 400_000, [300, 30, 36, 40], [5, 0, 0, 0], 8)  # a new target, twice as tall
+    taller = [t.ident for t in tracks if t.state == TRACKED and t.ident != 1]
+    assert taller and taller[0] > 1 and not any(t.state == TRACKED for t in mot.update(500_000, none))
+    tracks = _follow(mot, 600_000, [340, 90, 6, 40], [0, 0, 0, 0], 5)  # the taller one back
+    assert [t.ident for t in tracks if t.state == TRACKED] == taller
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(10):  # two targets alike leave together: which one comes back is not known
+        mot.update(i * 10_000, np.array([[300 + 5 * i, 30, 30, 20], [300 + 5 * i, 200, 30, 20]], np.float32))
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [340, 100, 6, 20], [0, 0, 0, 0], 5)
+    assert [t.ident for t in tracks if t.state == TRACKED] == [3]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:

@@ -6,8 +6,9 @@ knew it was lost. Here:
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone;
   a target hidden behind another coasts at its velocity; both stay `TRACKED` for `hold_us`; one
-  that leaves the image is lost, and found again under its id if a target of its size comes back
-  through the same border near where it left;
+  that leaves the image is lost, and a target confirmed at that border with its size (on the axis
+  the border does not cut) takes its id back, wherever along the border it comes in, unless two
+  lost tracks fit (seed 002 re-identifies a target back in view by its likeness);
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
   onto the merged blob (up to slow corrections towards the events), and a `layout` places them
   on its events (see `layout.py`);
@@ -47,6 +48,7 @@ class AssociationParams:
     lost_after_us: int = 50_000  # a tentative track unseen this long is dropped
     hold_us: int = 2_000_000  # a confirmed track unseen this long is lost
     forget_after_us: int = 2_000_000  # a lost track unseen this long is forgotten
+    reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
@@ -73,6 +75,8 @@ class Track:
     score: float = 0.3
     rate: float = 0.0  # usual new events per update in its detection, while it moves
     own_size: tuple[float, float] | None = None  # w, h when it last had a detection of its own
+    # its own w (h) when its box last cleared the left and right (top and bottom) borders
+    full_size: tuple[float, float] | None = None
 
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
@@ -175,6 +179,9 @@ class MultiObjectTracker:
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
+        for tr in self.tracks:
+            if tr.state == TRACKED and tr.hits == p.confirm_hits:  # confirmed by this update
+                self._reidentify(tr)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
         for di, det in enumerate(dets):
             if di not in used:
@@ -204,13 +211,13 @@ class MultiObjectTracker:
     def _match(self, pred: list[Box], dets: list[Box], inter: list[list[float]], exclude_tracks: set[int],
                exclude_dets: set[int]) -> dict[int, int]:
         """One-to-one assignment, greedy by overlap, then by centre distance within the gate; lost
-        tracks also take detections of their size near their prediction (re-detection)."""
+        tracks (but those that left the image) also take detections of their size near their prediction."""
         p = self.params
         pairs = []
         for ti, (a, tr) in enumerate(zip(pred, self.tracks, strict=True)):
-            if ti in exclude_tracks or tr.state == _GONE:
-                continue
             lost = tr.state == LOST
+            if ti in exclude_tracks or tr.state == _GONE or (lost and self._sides(tr.box)):
+                continue  # one that left the image is found again by `_reidentify`, on its size
             size = max(a[2], a[3], 1.0)
             gate = (p.redetect_gate if lost else p.gate) * size
             for di, b in enumerate(dets):
@@ -219,10 +226,6 @@ class MultiObjectTracker:
                 overlap = inter[ti][di] / max(a[2] * a[3] + b[2] * b[3] - inter[ti][di], 1e-6)
                 if overlap >= p.min_iou:
                     cost = -overlap
-                elif lost and (offset := self._back_through(a, b)) is not None:
-                    if offset > gate:
-                        continue
-                    cost = offset / size
                 else:
                     ratio = b[2] * b[3] / _area(a)
                     dist = math.dist(_centre(a), _centre(b))
@@ -275,6 +278,8 @@ class MultiObjectTracker:
             tr.box = (cx - w / 2, cy - h / 2, w, h)
         tr.hits += 1
         tr.own_size = tr.box[2], tr.box[3]
+        sides, full = self._sides(tr.box), tr.full_size or tr.own_size
+        tr.full_size = full[0] if sides & 5 else tr.box[2], full[1] if sides & 10 else tr.box[3]
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
@@ -313,17 +318,19 @@ class MultiObjectTracker:
         return ((box[0] <= 1) | (box[1] <= 1) << 1 | (box[0] + box[2] >= self.width - 1) << 2
                 | (box[1] + box[3] >= self.height - 1) << 3)
 
-    def _back_through(self, left: Box, entering: Box) -> float | None:
-        """If a detection enters through the border a lost track left by, as tall as it was (through
-        the left or right border; as wide through the top or bottom; the clipped axis says nothing of
-        its size), how far along that border from where the track left; else None."""
-        sides = self._sides(left) & self._sides(entering)
-        if not sides:
-            return None
-        k = 1 if sides & 5 else 0  # the axis along the border: y for left/right, x for top/bottom
-        if not 0.67 < entering[k + 2] / max(left[k + 2], 1.0) < 1.5:
-            return None
-        return abs(_centre(left)[k] - _centre(entering)[k])
+    def _reidentify(self, new: Track) -> None:
+        """Seed 002's re-detection of a target back in view: a track confirmed at a border takes the id
+        of the one lost track that left through that border with its size (on the axis the border does
+        not clip); two such make it ambiguous, and it stays a new target."""
+        sides = self._sides(new.box)
+        k = 3 if sides & 5 else 2  # left/right borders clip the width: compare heights, else widths
+        if not sides or (sides & 5 and sides & 10):
+            return
+        tol = self.params.reid_size_ratio
+        alike = [tr for tr in self.tracks if tr.state == LOST and tr.full_size and self._sides(tr.box) & sides
+                 and 1 / tol < new.box[k] / tr.full_size[k - 2] < tol]
+        if len(alike) == 1:
+            new.ident, alike[0].state = alike[0].ident, _GONE
 
     def reset(self) -> None:
         self.tracks = []
