@@ -35,6 +35,18 @@ def run(quick: bool = False) -> list[dict]:
     return [_measure(quick, web=False), _measure(quick, web=True)]
 
 
+def _join(conf: zenoh.Config, rig: subprocess.Popen, wait_s: float = 30.0) -> zenoh.Session | None:
+    """A client session on the rig's router once it listens (its start takes seconds on a busy
+    machine); None if the rig exits or does not listen in `wait_s`."""
+    deadline = time.monotonic() + wait_s
+    while rig.poll() is None and time.monotonic() < deadline:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            time.sleep(0.2)
+    return None
+
+
 def _measure(quick: bool, web: bool) -> dict:
     measure_s = 2.0 if quick else 15.0
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -68,9 +80,10 @@ def _measure(quick: bool, web: bool) -> dict:
             *(("--web-port", str(free_port())) if web else ("--no-web",))]
     rig = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
     try:
-        time.sleep(1.0)  # the router listening
-        conf = ZenohSettings(mode="client", connect=[endpoint]).zenoh_config()
-        with zenoh.open(conf) as session:
+        session = _join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), rig)
+        if session is None:
+            return {"stage": "tracking latency in etam up", "web": web, "error": f"no router at {endpoint}"}
+        with session:
             subs = [session.declare_subscriber(f"etam/{RIG}/camera/*/events", on_events),
                     session.declare_subscriber(f"etam/{RIG}/tracker/objects/tracks", on_tracks)]
             time.sleep(WARMUP_S)
