@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 TENTATIVE, TRACKED, LOST = 0, 1, 2
+LEFT, TOP, RIGHT, BOTTOM = 1, 2, 4, 8  # the image borders a box touches, as bits
+CUT_X, CUT_Y = LEFT | RIGHT, TOP | BOTTOM  # borders that cut a box's width, its height
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
@@ -179,9 +181,6 @@ class MultiObjectTracker:
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
-        for tr in self.tracks:
-            if tr.state == TRACKED and tr.hits == p.confirm_hits:  # confirmed by this update
-                self._reidentify(tr)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
         for di, det in enumerate(dets):
             if di not in used:
@@ -279,10 +278,12 @@ class MultiObjectTracker:
         tr.hits += 1
         tr.own_size = tr.box[2], tr.box[3]
         sides, full = self._sides(tr.box), tr.full_size or tr.own_size
-        tr.full_size = full[0] if sides & 5 else tr.box[2], full[1] if sides & 10 else tr.box[3]
+        tr.full_size = full[0] if sides & CUT_X else tr.box[2], full[1] if sides & CUT_Y else tr.box[3]
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
+            if tr.state == TENTATIVE:
+                self._reidentify(tr)
             tr.state = TRACKED
 
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
@@ -311,24 +312,23 @@ class MultiObjectTracker:
             tr.state = LOST
 
     def _sides(self, box: Box) -> int:
-        """The image borders a box touches (its target may be leaving or entering), as bits: left 1,
-        top 2, right 4, bottom 8."""
+        """The image borders a box touches (its target may be leaving or entering), as `LEFT`... bits."""
         if not self.width:
             return 0
-        return ((box[0] <= 1) | (box[1] <= 1) << 1 | (box[0] + box[2] >= self.width - 1) << 2
-                | (box[1] + box[3] >= self.height - 1) << 3)
+        return ((box[0] <= 1) * LEFT | (box[1] <= 1) * TOP | (box[0] + box[2] >= self.width - 1) * RIGHT
+                | (box[1] + box[3] >= self.height - 1) * BOTTOM)
 
     def _reidentify(self, new: Track) -> None:
         """Seed 002's re-detection of a target back in view: a track confirmed at a border takes the id
         of the one lost track that left through that border with its size (on the axis the border does
         not clip); two such make it ambiguous, and it stays a new target."""
         sides = self._sides(new.box)
-        k = 3 if sides & 5 else 2  # left/right borders clip the width: compare heights, else widths
-        if not sides or (sides & 5 and sides & 10):
+        if not sides or (sides & CUT_X and sides & CUT_Y):
             return
+        axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
         tol = self.params.reid_size_ratio
         alike = [tr for tr in self.tracks if tr.state == LOST and tr.full_size and self._sides(tr.box) & sides
-                 and 1 / tol < new.box[k] / tr.full_size[k - 2] < tol]
+                 and 1 / tol < new.box[2 + axis] / tr.full_size[axis] < tol]
         if len(alike) == 1:
             new.ident, alike[0].state = alike[0].ident, _GONE
 
