@@ -323,9 +323,29 @@ def test_cell_grid_kernels_equal_opencv() -> None:
             assert np.array_equal(cells.close(mask, disc), cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc))
             counts = rng.integers(0, 17, (rows, cols)).astype(np.int32)
             blurred = cv2.blur(counts.astype(np.float32) / 16, (size, size))
-            assert np.array_equal(cells.dense(counts, size, 0.08 * size * size * 16), (blurred > 0.08).astype(np.uint8))
+            assert np.array_equal(cells.box_sums(counts, size) > 0.08 * size * size * 16, blurred > 0.08)
         image = rng.random((rows * 4 - 1, cols * 4 - 3)).astype(np.float32)
         full = np.zeros((rows * 4, cols * 4), np.float32)
         full[:image.shape[0], :image.shape[1]] = image >= np.float32(0.5)
         expected = full.reshape(rows, 4, cols, 4).sum(axis=(1, 3))
         assert np.array_equal(cells.occupancy(image, 4, np.float32(0.5)), expected)
+
+
+def test_clusters_grow_a_sparse_target_from_its_dense_part_and_leave_sparse_noise_alone() -> None:
+    """Hysteresis: a region found at `density` extends over the sparser cells around it (a target
+    with little texture), while a patch as sparse as those cells but with no dense part is noise."""
+    from services.tracker.objects.clusters import ClusterParams, detect_clusters
+
+    image = np.zeros((260, 346), np.float32)
+    yy, xx = np.mgrid[:260, :346]
+    sparse = (xx + 3 * yy) % 16 == 0  # one pixel in 16 fired, evenly: between `grow` and `density`
+    image[60:140, 40:120][sparse[60:140, 40:120]] = 1.0  # a sparse target ...
+    image[60:90, 40:70] = 1.0  # ... with one textured corner
+    image[150:230, 220:300][sparse[150:230, 220:300]] = 1.0  # as sparse, nothing dense: not a target
+    params = ClusterParams()
+    boxes = detect_clusters(image, params)
+    assert len(boxes) == 1
+    x, y, w, h = boxes[0]
+    assert (x, y) == pytest.approx((40, 60), abs=3) and (w, h) == pytest.approx((80, 80), abs=8)
+    params.grow = params.density  # without hysteresis only the dense corner (and bits of the rest) is found
+    assert all(b[2] * b[3] < 0.5 * 80 * 80 for b in detect_clusters(image, params))

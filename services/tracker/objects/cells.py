@@ -3,7 +3,7 @@
 The grid is small (87 x 65 cells at 346 x 260), so OpenCV's per-call overhead and its thread pool
 (whose spinning workers take the other core from the rest of an update) cost more than the work
 itself; these kernels do the same steps in one thread, in integers, so results are exact:
-occupancy counts, a box-sum threshold with reflected borders, a closing, and 8-connected
+occupancy counts, box sums with reflected borders, a closing, and 8-connected
 components with their boxes and areas (the layout of OpenCV's `connectedComponentsWithStats`).
 """
 
@@ -45,9 +45,9 @@ def _reflect(i, n):  # noqa: ANN001, ANN202 - numba kernel
 
 
 @numba.njit(cache=True, nogil=True)
-def dense(counts, window, least):  # noqa: ANN001, ANN201 - numba kernel
-    """1 where the counts summed over a `window` x `window` square (borders reflected) exceed
-    `least`; running sums, along x and then along y."""
+def box_sums(counts, window):  # noqa: ANN001, ANN201 - numba kernel
+    """The counts summed over a `window` x `window` square around each cell (borders reflected);
+    running sums, along x and then along y."""
     rows, cols = counts.shape
     r = window // 2
     across = np.zeros((rows, cols), np.int32)
@@ -60,14 +60,13 @@ def dense(counts, window, least):  # noqa: ANN001, ANN201 - numba kernel
             total += src[_reflect(x + r, cols)]
             across[y, x] = total
             total -= src[_reflect(x - r, cols)]
-    out = np.zeros((rows, cols), np.uint8)
+    out = np.zeros((rows, cols), np.int32)
     total_row = np.zeros(cols, np.int32)
     for i in range(-r, r):
         total_row += across[_reflect(i, rows)]
     for y in range(rows):
         total_row += across[_reflect(y + r, rows)]
-        for x in range(cols):
-            out[y, x] = total_row[x] > least
+        out[y] = total_row
         total_row -= across[_reflect(y - r, rows)]
     return out
 
@@ -168,3 +167,15 @@ def components(mask):  # noqa: ANN001, ANN201 - numba kernel
     stats[:, H] = y1 - stats[:, Y]
     stats[0] = 0
     return count, labels, stats
+
+
+@numba.njit(cache=True, nogil=True)
+def labels_exceeding(labels, values, least, n):  # noqa: ANN001, ANN201 - numba kernel
+    """Per label (0..n-1), whether any of its cells has a value above `least`."""
+    out = np.zeros(n, np.bool_)
+    rows, cols = labels.shape
+    for y in range(rows):
+        for x in range(cols):
+            if values[y, x] > least:
+                out[labels[y, x]] = True
+    return out

@@ -6,6 +6,9 @@ same regions at a sixteenth of the work, which keeps an update well under a mill
 
 The threshold is on occupancy (the share of pixels with a recent event), not on counts, so a hot
 or flickering pixel weighs no more than one event and sparse, slow objects still form one region.
+It has two levels (hysteresis, as Canny's edges): a region must reach `density` somewhere and then
+extends over the cells around down to `grow`, so a target with little texture is found whole, not
+in pieces, while sensor noise, which never reaches `density`, forms none.
 The region found that way is wider than the object by the smoothing window and trails behind it, so
 each box is taken instead from the pixels with an event in about the last `tau`, trimmed of the
 outermost `trim` share on each side.
@@ -26,6 +29,7 @@ from services.tracker.objects import cells
 @dataclass
 class ClusterParams:
     density: float = 0.08  # share of pixels with a recent event, over `window_cells` squares of cells
+    grow: float = 0.05  # a region reaching `density` somewhere extends over its cells above this share
     cell_px: int = 4  # occupancy is thresholded, closed and labelled on a grid of cells this size
     window_cells: int = 3
     close_cells: int = 3
@@ -39,18 +43,20 @@ def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
     c, k = params.cell_px, params.window_cells
     disc = _disc(max(params.close_cells, 1))  # 1 x 1: no closing
-    return _detect(image, c, np.float32(params.active), k, params.density * k * k * c * c, disc,
+    return _detect(image, c, np.float32(params.active), k, params.density * k * k * c * c,
+                   min(params.grow, params.density) * k * k * c * c, disc,
                    -(-params.min_area_px // (c * c)), np.float32(params.recent), params.trim)
 
 
 @numba.njit(cache=True, nogil=True)
-def _detect(image, cell, active, window, least, disc, min_cells, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+def _detect(image, cell, active, window, least, least_grow, disc, min_cells, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
     """All of `detect_clusters` in one call: an update's Python overhead was as long as its kernels."""
-    mask = cells.dense(cells.occupancy(image, cell, active), window, least)
+    sums = cells.box_sums(cells.occupancy(image, cell, active), window)
+    mask = (sums > least_grow).astype(np.uint8)
     if disc.size > 1:
         mask = cells.close(mask, disc)
     n, labels, stats = cells.components(mask)
-    big = stats[:, cells.AREA] >= min_cells
+    big = (stats[:, cells.AREA] >= min_cells) & cells.labels_exceeding(labels, sums, least, n)
     big[0] = False
     boxes = _trimmed_boxes(labels, big, cell, image, recent, trim)[big]
     return boxes[(boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
