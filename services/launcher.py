@@ -8,8 +8,10 @@ traffic of the rig to write a report, and stops every child on Ctrl-C, SIGTERM o
 from __future__ import annotations
 
 import ctypes
+import functools
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -34,15 +36,19 @@ STABLE_S = 30.0  # a child that ran this long starts again from the shortest bac
 USAGE_ERROR = 2  # a child's exit code for a bad flag, source or config: restarting cannot help
 STOP_GRACE_S = 3.0
 SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop keeps its liveliness token)
+VIEWER_NICE = 10  # the dashboard yields the CPU to the services a robot acts on
 
 
-def _die_with_parent() -> None:
-    """In the child before exec: get SIGTERM when the launcher dies, however it dies."""
+def _die_with_parent(nice: int = 0) -> None:
+    """In the child before exec: get SIGTERM when the launcher dies, however it dies; lower its
+    scheduling priority by `nice`."""
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:  # not Linux: Ctrl-C still reaches the process group
         pass
+    if nice:
+        os.nice(nice)
 
 
 @dataclass
@@ -51,6 +57,7 @@ class Child:
 
     name: str
     argv: list[str]
+    nice: int = 0  # how much lower than the launcher's its scheduling priority is
     proc: subprocess.Popen | None = None
     started: float = 0.0
     restarts: int = 0
@@ -61,7 +68,8 @@ class Child:
 
     def start(self, t0: float) -> None:
         # children write to our stderr: stdout stays for the dashboard URL, which scripts read
-        self.proc = subprocess.Popen(self.argv, preexec_fn=_die_with_parent, stdout=sys.stderr)
+        self.proc = subprocess.Popen(self.argv, preexec_fn=functools.partial(_die_with_parent, self.nice),
+                                     stdout=sys.stderr)
         self.started = time.monotonic()
         log.info("started %s (pid %d)", self.name, self.proc.pid)
 
@@ -221,7 +229,8 @@ def _children(opts: UpOptions) -> list[Child]:
         extra = ["--source", opts.source, *opts.camera_args] if name == "camera" else []
         out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra]))
     if opts.web:
-        out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)]))
+        out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)],
+                         nice=VIEWER_NICE))
     return out
 
 

@@ -178,3 +178,19 @@ def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig
     assert report["keys"][f"etam/{rig}/camera/cam0/stats"]["messages"] >= 7  # Stats kept flowing
     assert report["keys"][f"etam/{rig}/camera/cam0/truth/pose"]["messages"] > 5
     assert "plays slower than real time" in err
+
+
+def test_the_dashboard_runs_at_a_lower_priority_than_the_services() -> None:
+    """On a drone's few cores the viewer must not delay tracking: `etam up` starts it niced."""
+    from services.launcher import VIEWER_NICE, Child, UpOptions, _children
+
+    children = {c.name: c for c in _children(UpOptions(rig="r"))}
+    assert children["web"].nice == VIEWER_NICE > 0 and children["tracker"].nice == children["camera"].nice == 0
+    child = Child("sleeper", ["sleep", "30"], nice=VIEWER_NICE)
+    child.start(time.monotonic())
+    expected = min(os.getpriority(os.PRIO_PROCESS, 0) + VIEWER_NICE, 19)
+    try:
+        assert os.getpriority(os.PRIO_PROCESS, child.proc.pid) == expected
+    finally:
+        child.proc.kill()
+        child.proc.wait()
