@@ -39,7 +39,7 @@ SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop
 VIEWER_NICE = 10  # the dashboard yields the CPU to the services a robot acts on
 
 
-def _die_with_parent(nice: int = 0) -> None:
+def _prepare_child(nice: int) -> None:
     """In the child before exec: get SIGTERM when the launcher dies, however it dies; lower its
     scheduling priority by `nice`."""
     try:
@@ -68,7 +68,7 @@ class Child:
 
     def start(self, t0: float) -> None:
         # children write to our stderr: stdout stays for the dashboard URL, which scripts read
-        self.proc = subprocess.Popen(self.argv, preexec_fn=functools.partial(_die_with_parent, self.nice),
+        self.proc = subprocess.Popen(self.argv, preexec_fn=functools.partial(_prepare_child, self.nice),
                                      stdout=sys.stderr)
         self.started = time.monotonic()
         log.info("started %s (pid %d)", self.name, self.proc.pid)

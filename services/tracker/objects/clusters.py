@@ -42,9 +42,10 @@ class ClusterParams:
 def detect_clusters(image: np.ndarray, params: ClusterParams) -> np.ndarray:
     """Boxes (N x 4: x, y, w, h) of the moving clusters in a decayed event image."""
     c, k = params.cell_px, params.window_cells
+    window_px = k * k * c * c
     disc = _disc(max(params.close_cells, 1))  # 1 x 1: no closing
-    return _detect(image, c, np.float32(params.active), k, params.density * k * k * c * c,
-                   min(params.grow, params.density) * k * k * c * c, disc,
+    return _detect(image, c, np.float32(params.active), k, params.density * window_px,
+                   min(params.grow, params.density) * window_px, disc,
                    -(-params.min_area_px // (c * c)), np.float32(params.recent), params.trim)
 
 
