@@ -13,8 +13,10 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from benchmarks import free_port
+from services.config import ZenohSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -49,6 +51,16 @@ def wait_for(predicate: Callable[[], object], timeout_s: float, what: str, perio
             return value
         time.sleep(period_s)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def client_session(endpoint: str) -> zenoh.Session:
+    return zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config())
+
+
+def wait_alive(session: zenoh.Session, rig: str, count: int, timeout_s: float = 60) -> None:
+    """Until `count` services of `rig` hold their liveliness token (a clean clone's first start compiles kernels)."""
+    wait_for(lambda: len(list(session.liveliness().get(f"etam/{rig}/*/*/alive", timeout=1.0))) == count,
+             timeout_s, f"{count} services' liveliness tokens")
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from services.camera.formats import Calibration, FormatError, open_recording
 from services.camera.formats.hdf5 import H5Writer
 from services.camera.sources import FileSource, SourceError, open_sources
 from services.messages import EVENT_DTYPE
-from tests.conftest import SHARED, etam_argv
+from tests.conftest import SHARED, client_session, etam_argv
 
 REAL = SHARED / "data" / "real"
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is absent")
@@ -203,9 +203,6 @@ def test_sim_and_info_commands(tmp_path: Path) -> None:
 
 
 def test_a_file_played_as_fast_as_possible_reaches_a_subscriber_whole(tmp_path: Path, router: str, rig: str) -> None:
-    import zenoh
-
-    from services.config import ZenohSettings
     from services.messages import EventPacket, Tracks, decode
     from tests.conftest import spawn, wait_for
 
@@ -215,7 +212,7 @@ def test_a_file_played_as_fast_as_possible_reaches_a_subscriber_whole(tmp_path: 
     expected = open_recording(path).read_all()
     packets: list[EventPacket] = []
     truth: list[Tracks] = []
-    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+    with client_session(router) as s:
         subs = [s.declare_subscriber(f"etam/{rig}/camera/cam0/events",
                                      lambda x: packets.append(decode(x.payload.to_bytes(), EventPacket))),
                 s.declare_subscriber(f"etam/{rig}/camera/cam0/truth/boxes",
@@ -279,14 +276,11 @@ def test_bench_readers_agree_with_the_peers_on_the_same_files() -> None:
 
 @needs_real
 def test_playing_a_davis_file_publishes_its_imu(router: str, rig: str) -> None:
-    import zenoh
-
-    from services.config import ZenohSettings
     from services.messages import ImuPacket, decode
     from tests.conftest import spawn, wait_for
 
     samples: list[ImuPacket] = []
-    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+    with client_session(router) as s:
         sub = s.declare_subscriber(f"etam/{rig}/camera/cam0/imu",
                                    lambda x: samples.append(decode(x.payload.to_bytes(), ImuPacket)))
         with spawn("camera", "--source", str(REAL / "davis240c_imu" / "IMU_translBoxes.aedat"), "--rate", "0",
@@ -338,14 +332,11 @@ def test_sim_rotation_writes_events_poses_omega_and_panorama(tmp_path: Path) -> 
 
 
 def test_live_rotation_source_publishes_truth_poses(router: str, rig: str) -> None:
-    import zenoh
-
-    from services.config import ZenohSettings
     from services.messages import Pose, decode
     from tests.conftest import spawn, wait_for
 
     poses: list[Pose] = []
-    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+    with client_session(router) as s:
         sub = s.declare_subscriber(f"etam/{rig}/camera/cam0/truth/pose",
                                    lambda x: poses.append(decode(x.payload.to_bytes(), Pose)))
         with spawn("camera", "--source", "sim:rotation", "--connect", router, "--rig", rig):
@@ -413,9 +404,6 @@ def test_sim_stereo_is_two_cameras_on_a_known_baseline_seeing_the_same_scene(ste
 
 def test_a_stereo_file_plays_both_cameras_with_calibration_and_depth(stereo_file: Path, router: str,
                                                                     rig: str) -> None:
-    import zenoh
-
-    from services.config import ZenohSettings
     from services.messages import CameraInfo, EventPacket, Image, decode, image_to_array
     from tests.conftest import spawn, wait_for
 
@@ -426,7 +414,7 @@ def test_a_stereo_file_plays_both_cameras_with_calibration_and_depth(stereo_file
     def on(store: dict, kind: type):  # noqa: ANN202 - a zenoh callback
         return lambda s: store[str(s.key_expr).split("/")[3]].append(decode(s.payload.to_bytes(), kind))
 
-    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+    with client_session(router) as s:
         subs = [s.declare_subscriber(f"etam/{rig}/camera/*/events", on(packets, EventPacket)),
                 s.declare_subscriber(f"etam/{rig}/camera/*/truth/depth", on(depth, Image))]
         with spawn("camera", "--source", str(stereo_file), "--rate", "0", "--connect", router, "--rig", rig):

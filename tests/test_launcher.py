@@ -27,7 +27,8 @@ def _rig_processes(rig: str) -> list[psutil.Process]:
 
 
 def _trackers(rig: str, other_than: int | None = None) -> list[psutil.Process]:
-    return [p for p in _rig_processes(rig) if "tracker" in p.cmdline() and p.pid != other_than]
+    # the command line read once by process_iter: asking again raises for a killed tracker not yet reaped
+    return [p for p in _rig_processes(rig) if "tracker" in p.info["cmdline"] and p.pid != other_than]
 
 
 def _up(rig: str, report: Path, duration: float, *extra: str) -> subprocess.Popen:

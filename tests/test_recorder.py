@@ -12,14 +12,14 @@ import numpy as np
 import zenoh
 
 from services.camera.recorder import read_mcap
-from services.config import ZenohSettings
-from tests.conftest import ROOT, etam_argv, spawn, wait_for
+from tests.conftest import ROOT, client_session, etam_argv, spawn, wait_alive, wait_for
 
 
 def _record(router: str, rig: str, out: Path, seconds: float, stop: signal.Signals) -> None:
     with spawn("camera", "--connect", router, "--rig", rig, "--log-level", "WARNING"):
-        with spawn("record", str(out), "--keys", f"etam/{rig}/camera/**", "--connect", router,
-                   "--log-level", "WARNING") as rec:
+        with spawn("record", str(out), "--keys", f"etam/{rig}/camera/**", "--connect", router, "--rig", rig,
+                   "--log-level", "WARNING") as rec, client_session(router) as s:
+            wait_alive(s, rig, 2)
             time.sleep(seconds)
             rec.send_signal(stop)
             rec.wait(10)
@@ -39,7 +39,7 @@ def test_record_then_replay_reproduces_payloads_bytewise(tmp_path: Path, router:
         with lock:
             got.append((str(sample.key_expr), sample.payload.to_bytes()))
 
-    with zenoh.open(ZenohSettings(mode="client", connect=[router]).zenoh_config()) as s:
+    with client_session(router) as s:
         sub = s.declare_subscriber(f"etam/{rig}/camera/**", on_sample)
         replay = subprocess.run(etam_argv("replay", str(out), "--rate", "0", "--connect", router, "--log-level",
                                           "WARNING"), cwd=ROOT, capture_output=True, text=True, timeout=120)

@@ -13,17 +13,12 @@ import urllib.request
 import numpy as np
 import zenoh
 
-from services.config import ZenohSettings
 from services.messages import (
     EVENT_DTYPE, CameraInfo, Command, EventPacket, Image, Reply, Stats, Tracks, decode, image_to_array,
 )
-from tests.conftest import ROOT, etam_argv, free_port, spawn, wait_for
+from tests.conftest import ROOT, client_session, etam_argv, free_port, spawn, wait_alive, wait_for
 
 ROOT_ARGS = ("--log-level", "WARNING")
-
-
-def _session(endpoint: str) -> zenoh.Session:
-    return zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config())
 
 
 class Collector:
@@ -80,7 +75,7 @@ def test_camera_tracker_and_subscriber_processes(router: str, rig: str) -> None:
 
 def test_garbage_on_events_is_counted_and_the_tracker_lives_on(router: str, rig: str) -> None:
     events_key = f"etam/{rig}/camera/cam0/events"
-    with spawn("tracker", "--connect", router, "--rig", rig, *ROOT_ARGS) as tracker, _session(router) as s:
+    with spawn("tracker", "--connect", router, "--rig", rig, *ROOT_ARGS) as tracker, client_session(router) as s:
         stats = Collector(s, f"etam/{rig}/tracker/objects/stats")
         tracks = Collector(s, f"etam/{rig}/tracker/objects/tracks")
         wait_for(lambda: stats.of(Stats), 20, "the tracker's first Stats")
@@ -101,7 +96,7 @@ def test_garbage_on_events_is_counted_and_the_tracker_lives_on(router: str, rig:
 
 
 def test_sigterm_stops_a_service_within_two_seconds(router: str, rig: str) -> None:
-    with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS) as cam, _session(router) as s:
+    with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS) as cam, client_session(router) as s:
         stats = Collector(s, f"etam/{rig}/camera/cam0/stats")
         wait_for(lambda: stats.of(Stats), 20, "the camera's Stats")
         stats.sub.undeclare()
@@ -115,7 +110,7 @@ def test_sigterm_stops_a_service_within_two_seconds(router: str, rig: str) -> No
 
 def test_queries_info_and_commands(router: str, rig: str) -> None:
     common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
-    with spawn("camera", *common), spawn("tracker", *common), _session(router) as s:
+    with spawn("camera", *common), spawn("tracker", *common), client_session(router) as s:
         wait_for(lambda: list(s.liveliness().get(f"etam/{rig}/tracker/objects/alive", timeout=1.0)), 20,
                  "the tracker's liveliness token")
         info = _query(s, f"etam/{rig}/camera/cam0/info")
@@ -137,8 +132,8 @@ def test_queries_info_and_commands(router: str, rig: str) -> None:
 
 def test_ls_and_hz_show_the_rig(router: str, rig: str) -> None:
     common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
-    with spawn("camera", *common), spawn("tracker", *common):
-        time.sleep(3)
+    with spawn("camera", *common), spawn("tracker", *common), client_session(router) as s:
+        wait_alive(s, rig, 2)
         ls = subprocess.run(etam_argv("ls", "--json", "--connect", router, "--rig", rig),
                             capture_output=True, text=True, timeout=30)
         hz = subprocess.run(etam_argv("hz", f"etam/{rig}/camera/*/events", "--reports", "2", "--json",
@@ -157,7 +152,7 @@ def test_ls_and_hz_show_the_rig(router: str, rig: str) -> None:
 
 def test_web_serves_the_dashboard(router: str, rig: str) -> None:
     port = free_port()
-    with spawn("web", "--connect", router, "--rig", rig, "--port", str(port), *ROOT_ARGS), _session(router) as s:
+    with spawn("web", "--connect", router, "--rig", rig, "--port", str(port), *ROOT_ARGS), client_session(router) as s:
         wait_for(lambda: list(s.liveliness().get(f"etam/{rig}/web/web/alive", timeout=1.0)), 30, "the web service")
         pong = _query(s, f"etam/{rig}/web/web/cmd", Command(op="ping"))
         assert pong.result["port"] == port
@@ -187,7 +182,7 @@ def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str
     plugin = subprocess.Popen([sys.executable, "examples/heatmap_plugin.py", "--connect", router, "--rig", rig],
                               cwd=ROOT, start_new_session=True)
     try:
-        with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS), _session(router) as s:
+        with spawn("camera", "--connect", router, "--rig", rig, *ROOT_ARGS), client_session(router) as s:
             frames = Collector(s, f"etam/{rig}/heatmap/heatmap/frame")
             got = wait_for(lambda: frames.of(Image), 30, "a heat-map frame")
             frames.sub.undeclare()
