@@ -27,15 +27,27 @@ def list_services(session: zenoh.Session, rig: str = "*", wait_s: float = 1.5) -
         with lock:
             stats[str(sample.key_expr).rsplit("/", 1)[0]] = msg
 
-    sub = session.declare_subscriber(keys.stats(rig), on_stats)
-    time.sleep(wait_s)  # also lets a fresh peer session learn the network before the liveliness query
-    sub.undeclare()
-    alive = set()
-    for reply in session.liveliness().get(keys.alive(rig), timeout=wait_s):
-        if reply.ok is not None:
-            alive.add(str(reply.ok.key_expr).rsplit("/", 1)[0])
+    alive: set[str] = set()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        prefix = str(sample.key_expr).rsplit("/", 1)[0]
+        with lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                alive.add(prefix)
+            else:  # the service went away during the wait
+                alive.discard(prefix)
+
+    # tokens gathered over the whole wait (those already declared come as history): one query at its
+    # end missed a token now and then on a loaded machine
+    subs = [session.declare_subscriber(keys.stats(rig), on_stats),
+            session.liveliness().declare_subscriber(keys.alive(rig), on_token, history=True)]
+    time.sleep(wait_s)
+    for sub in subs:
+        sub.undeclare()
     out = []
-    for prefix in sorted(alive | set(stats)):
+    with lock:
+        prefixes = sorted(alive | set(stats))
+    for prefix in prefixes:
         st = stats.get(prefix)
         out.append({
             "prefix": prefix, "alive": prefix in alive,

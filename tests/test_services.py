@@ -141,7 +141,7 @@ def test_ls_and_hz_show_the_rig(router: str, rig: str) -> None:
     assert ls.returncode == 0, ls.stderr
     found = {s["prefix"]: s for s in json.loads(ls.stdout)}
     assert set(found) == {f"etam/{rig}/camera/cam0", f"etam/{rig}/tracker/objects"}
-    assert all(s["alive"] for s in found.values())
+    assert all(s["alive"] for s in found.values()), found
     outs = {r["key"] for r in found[f"etam/{rig}/camera/cam0"]["keys"] if r["dir"] == "out"}
     assert f"etam/{rig}/camera/cam0/events" in outs
     assert hz.returncode == 0, hz.stderr
