@@ -172,6 +172,19 @@ def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> Non
     assert by_id[1].box[2] == pytest.approx(30, abs=3)  # and kept its size through the merge
 
 
+def test_association_keeps_two_targets_travelling_side_by_side_apart() -> None:
+    """Two targets moving the same way at 100 and 125 px/s are one blob for a while: still two targets."""
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(90):
+        a, b = [20 + 1.0 * i, 100, 30, 30], [20 + 1.25 * i, 134, 30, 30]
+        apart = not 40 <= i < 60
+        boxes = [a, b] if apart else [[a[0], 100, b[0] + 30 - a[0], 64]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    by_id = {t.ident: t for t in tracks if t.state == TRACKED}
+    assert sorted(by_id) == [1, 2]
+    assert by_id[1].box[1] < by_id[2].box[1]  # each on its own target
+
+
 def test_key_counter_counts_gaps_and_windows() -> None:
     c = KeyCounter("k", "in")
     for seq in (1, 2, 5, 6):

@@ -54,7 +54,9 @@ class AssociationParams:
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
-    same_velocity_px_s: float = 40.0  # tracks in one detection moving this alike are one target
+    # tracks in one detection moving within this of each other are one target seen in pieces; looser, it
+    # would fold two targets travelling side by side into one
+    same_velocity_px_s: float = 15.0
     young_us: int = 300_000  # a track younger than this merges into an older one it shares with
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
