@@ -344,6 +344,26 @@ def test_cell_grid_kernels_equal_opencv() -> None:
         assert np.array_equal(cells.occupancy(image, 4, np.float32(0.5)), expected)
 
 
+def test_clusters_split_two_targets_that_the_smoothing_joins() -> None:
+    """Two textured targets 8 px apart are one smoothed region, but two boxes; one target whose
+    texture has gaps of a few pixels stays whole."""
+    from services.tracker.objects.clusters import ClusterParams, detect_clusters
+
+    image = np.zeros((260, 346), np.float32)
+    yy, xx = np.mgrid[:260, :346]
+    texture = ((xx // 3 + yy // 3) % 2 == 0).astype(np.float32)  # 3 px checks: gaps of 3 px
+    image[50:110, 60:120] = texture[50:110, 60:120]
+    image[50:110, 128:168] = texture[50:110, 128:168]
+    image[150:210, 200:260] = texture[150:210, 200:260]
+    params = ClusterParams()
+    boxes = sorted(detect_clusters(image, params).tolist())
+    assert len(boxes) == 3
+    for (x, y, w, h), want in zip(boxes, [(60, 50, 60, 60), (128, 50, 40, 60), (200, 150, 60, 60)], strict=True):
+        assert (x, y, w, h) == pytest.approx(want, abs=3)
+    params.part_gap_px = 0
+    assert len(detect_clusters(image, params)) == 2  # the two close targets as one box
+
+
 def test_clusters_grow_a_sparse_target_from_its_dense_part_and_leave_sparse_noise_alone() -> None:
     """Hysteresis: a region found at `density` extends over the sparser cells around it (a target
     with little texture), while a patch as sparse as those cells but with no dense part is noise."""
