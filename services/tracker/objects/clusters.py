@@ -80,20 +80,16 @@ def _parts(image, box, recent, window, least_share, least_px):  # noqa: ANN001, 
     """The parts of one box whose recent pixels lie apart by about `window` blocks of 2 x 2 px or more,
     each boxed, if two or more hold `least_share` of its recent pixels and `least_px` pixels; else the
     box itself. Parts are found on the blocks (a quarter of the work), boxed on the pixels."""
-    x0, y0 = int(box[0]), int(box[1])
-    hits = image[y0:y0 + int(box[3]), x0:x0 + int(box[2])] >= recent
-    rows, cols = hits.shape
-    blocks = np.zeros(((rows + 1) // 2, (cols + 1) // 2), np.int32)
-    for y in range(rows):
-        for x in range(cols):
-            blocks[y // 2, x // 2] |= hits[y, x]
+    x0, y0, cols, rows = int(box[0]), int(box[1]), int(box[2]), int(box[3])
+    region = image[y0:y0 + rows, x0:x0 + cols]
+    blocks = cells.occupancy(region, 2, recent)
     n, labels, _ = cells.components((cells.box_sums(blocks, window) > 0).astype(np.uint8))
     count = np.zeros(n, np.int64)
     lo = np.full((n, 2), 1 << 30, np.int64)
     hi = np.full((n, 2), -1, np.int64)
     for y in range(rows):
         for x in range(cols):
-            if hits[y, x]:
+            if region[y, x] >= recent:
                 lab = labels[y // 2, x // 2]
                 count[lab] += 1
                 lo[lab, 0], lo[lab, 1] = min(lo[lab, 0], x), min(lo[lab, 1], y)
