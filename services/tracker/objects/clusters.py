@@ -85,20 +85,22 @@ def _parts(image, box, recent, window, least_share, least_px):  # noqa: ANN001, 
     blocks = cells.occupancy(region, 2, recent)
     n, labels, _ = cells.components((cells.box_sums(blocks, window) > 0).astype(np.uint8))
     count = np.zeros(n, np.int64)
+    for by in range(labels.shape[0]):
+        for bx in range(labels.shape[1]):
+            count[labels[by, bx]] += blocks[by, bx]
+    keep = (count >= least_share * count.sum()) & (count >= least_px)
+    keep[0] = False
+    kept = np.flatnonzero(keep)
+    if len(kept) < 2:  # most boxes: decided on the blocks, no pass over the pixels
+        return box.reshape(1, 4)
     lo = np.full((n, 2), 1 << 30, np.int64)
     hi = np.full((n, 2), -1, np.int64)
     for y in range(rows):
         for x in range(cols):
             if region[y, x] >= recent:
                 lab = labels[y // 2, x // 2]
-                count[lab] += 1
                 lo[lab, 0], lo[lab, 1] = min(lo[lab, 0], x), min(lo[lab, 1], y)
                 hi[lab, 0], hi[lab, 1] = max(hi[lab, 0], x), max(hi[lab, 1], y)
-    keep = (count >= least_share * count.sum()) & (count >= least_px)
-    keep[0] = False
-    kept = np.flatnonzero(keep)
-    if len(kept) < 2:
-        return box.reshape(1, 4)
     out = np.empty((len(kept), 4), np.float32)
     for i, lab in enumerate(kept):
         out[i, 0], out[i, 1] = x0 + lo[lab, 0], y0 + lo[lab, 1]
