@@ -134,7 +134,8 @@ def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
 
 def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_comes_back() -> None:
     """Seed 002's re-detection: a target back through the border it left by, with its size, gets its
-    id again wherever along that border it comes in; one of another size, or two alike, do not."""
+    id again wherever along that border it comes in; one of another size, or two alike, do not,
+    but of two that both fit, the one that fits clearly better does."""
     none = np.zeros((0, 4), np.float32)
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)  # out through the right border
@@ -153,6 +154,12 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     mot.update(100_000, none)
     tracks = _follow(mot, 300_000, [340, 100, 6, 20], [0, 0, 0, 0], 5)
     assert [t.ident for t in tracks if t.state == TRACKED] == [3]
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(10):  # two that both fit, one clearly better: 21 px is 5% off 20 px and 13% off 24 px
+        mot.update(i * 10_000, np.array([[300 + 5 * i, 30, 30, 20], [300 + 5 * i, 200, 30, 24]], np.float32))
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [340, 100, 6, 21], [0, 0, 0, 0], 5)
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:

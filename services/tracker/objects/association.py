@@ -8,7 +8,7 @@ knew it was lost. Here:
   a target hidden behind another coasts at its velocity; both stay `TRACKED` for `hold_us`; one
   that leaves the image is lost, and a target confirmed at that border with its size (on the axis
   the border does not cut) takes its id back, wherever along the border it comes in, unless two
-  lost tracks fit (seed 002 re-identifies a target back in view by its likeness);
+  lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
   onto the merged blob (up to slow corrections towards the events), and a `layout` places them
   on its events (see `layout.py`);
@@ -51,6 +51,7 @@ class AssociationParams:
     hold_us: int = 2_000_000  # a confirmed track unseen this long is lost
     forget_after_us: int = 2_000_000  # a lost track unseen this long is forgotten
     reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
+    reid_margin: float = 0.5  # of two lost tracks that fit, the better one's size error is below this share of the other's
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
@@ -322,17 +323,20 @@ class MultiObjectTracker:
 
     def _reidentify(self, new: Track) -> None:
         """Seed 002's re-detection of a target back in view: a track confirmed at a border takes the id
-        of the one lost track that left through that border with its size (on the axis the border does
-        not clip); two such make it ambiguous, and it stays a new target."""
+        of the lost track that left through that border with its size (on the axis the border does
+        not clip); where two fit, only one that fits clearly better than the other (else it stays new)."""
         sides = self._sides(new.box)
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
-        tol = self.params.reid_size_ratio
-        alike = [tr for tr in self.tracks if tr.state == LOST and tr.full_size and self._sides(tr.box) & sides
-                 and 1 / tol < new.box[2 + axis] / tr.full_size[axis] < tol]
-        if len(alike) == 1:
-            new.ident, alike[0].state = alike[0].ident, _GONE
+        p = self.params
+        misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(tr.full_size[axis], 1.0))), i)
+                        for i, tr in enumerate(self.tracks)
+                        if tr.state == LOST and tr.full_size and self._sides(tr.box) & sides)
+        misfit = [m for m in misfit if m[0] < math.log(p.reid_size_ratio)]
+        if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
+            found = self.tracks[misfit[0][1]]
+            new.ident, found.state = found.ident, _GONE
 
     def reset(self) -> None:
         self.tracks = []
