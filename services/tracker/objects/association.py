@@ -51,7 +51,8 @@ class AssociationParams:
     hold_us: int = 2_000_000  # a confirmed track unseen this long is lost
     forget_after_us: int = 2_000_000  # a lost track unseen this long is forgotten
     reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
-    reid_margin: float = 0.5  # of two lost tracks that fit, the better one's size error is below this share of the other's
+    # of two lost tracks that fit, the better one's size error is under this share of the other's
+    reid_margin: float = 0.5
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
