@@ -110,16 +110,16 @@ def test_association_holds_a_target_whose_detection_only_fades() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(10):  # moving, with a thousand new events per update
         box = np.array([[100 + 2 * i, 100, 40, 40]], np.float32)
-        mot.update(i * 10_000, box, fresh=np.array([1000.0]))
+        mot.update(i * 10_000, box, fresh=lambda b: np.full(len(b), 1000.0))
     for i in range(10, 20):  # stopped at x=118: the fading detection shrinks to its lower right
         k = i - 9
         box = np.array([[118 + 2 * k, 100 + 2 * k, 40 - 2 * k, 40 - 2 * k]], np.float32)
-        tracks = mot.update(i * 10_000, box, fresh=np.array([5.0]))
+        tracks = mot.update(i * 10_000, box, fresh=lambda b: np.full(len(b), 5.0))
     assert tracks[0].state == TRACKED and tracks[0].vel == (0.0, 0.0)
     assert tracks[0].box == pytest.approx((118, 100, 40, 40), abs=2)
     for i in range(20, 30):  # moving on: new events again
         tracks = mot.update(i * 10_000, np.array([[118 + 2 * (i - 19), 100, 40, 40]], np.float32),
-                            fresh=np.array([900.0]))
+                            fresh=lambda b: np.full(len(b), 900.0))
     assert tracks[0].box[0] == pytest.approx(138, abs=4) and tracks[0].vel[0] > 100
 
 
@@ -306,6 +306,27 @@ def test_layout_mends_a_wrong_size_slowly_and_keeps_right_ones() -> None:
     np.testing.assert_allclose(boxes[1], truth[1], atol=1)
     kept = fit_layout(img, np.float32(truth), LayoutParams(resize_px=0))
     np.testing.assert_allclose(kept[:, 2:], np.float32(truth)[:, 2:])
+
+
+def test_a_target_that_stops_beside_a_moving_one_is_held_where_it_stopped() -> None:
+    """Two targets in one blob, and one stops: counted over the blob, the other's events hide the stop,
+    and the layout would lay the still one onto them once its image fades."""
+    from services.tracker.objects.association import intersection
+
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(80):  # a passes b 20 px lower; b stops at i = 48, its image recent 3 updates, seen 8
+        a, b = [10 + 3 * i, 120, 30, 30], [260 - 2 * min(i, 48), 100, 30, 30]
+        moving = np.float32([a, b] if i < 48 else [a])
+        img = _blob_image([a, b] if i < 51 else [a], seed=i)
+        apart = a[0] + 30 < b[0] or i >= 56
+        boxes = [a, b] if apart and i < 56 else [a] if apart else [[min(a[0], b[0]), 100, 30 + abs(a[0] - b[0]), 50]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
+                            fresh=lambda c, moving=moving: intersection(c, moving).sum(axis=1),
+                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 2] and by_id[2].state == TRACKED
+    assert by_id[2].box[0] == pytest.approx(164, abs=3) and by_id[2].vel == (0.0, 0.0)  # where b stopped
+    assert by_id[1].box[0] == pytest.approx(10 + 3 * 79, abs=4)
 
 
 def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:

@@ -25,11 +25,12 @@ class FreshCounts:
         if len(events):
             _count(self.counts, events["x"], events["y"], self.shift)
 
-    def take(self, boxes: np.ndarray) -> np.ndarray:
-        """New events in each box (N x 4: x, y, w, h; the cells it touches), then the counts restart."""
-        return _take(self.counts, np.asarray(boxes, np.float32).reshape(-1, 4), self.shift)
+    def count(self, boxes: np.ndarray) -> np.ndarray:
+        """New events in each box (N x 4: x, y, w, h; the cells it touches)."""
+        return _count_in(self.counts, np.asarray(boxes, np.float32).reshape(-1, 4), self.shift)
 
     def reset(self) -> None:
+        """Counting starts again (after each update)."""
         self.counts[:] = 0
 
 
@@ -43,7 +44,7 @@ def _count(counts, xs, ys, shift):  # noqa: ANN001, ANN202 - numba kernel
 
 
 @numba.njit(cache=True, nogil=True)
-def _take(counts, boxes, shift):  # noqa: ANN001, ANN202 - numba kernel
+def _count_in(counts, boxes, shift):  # noqa: ANN001, ANN202 - numba kernel
     rows, cols = counts.shape
     cell = 1 << shift
     out = np.zeros(len(boxes), np.float64)
@@ -54,5 +55,4 @@ def _take(counts, boxes, shift):  # noqa: ANN001, ANN202 - numba kernel
         for cy in range(y0, y1):
             for cx in range(x0, x1):
                 out[k] += counts[cy, cx]
-    counts[:] = 0
     return out

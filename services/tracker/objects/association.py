@@ -11,7 +11,8 @@ knew it was lost. Here:
   lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
 - two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
   onto the merged blob (up to slow corrections towards the events), and a `layout` places them
-  on its events (see `layout.py`);
+  on its events (see `layout.py`); one that stops there, told by the new events in the part of its
+  box the others leave, is held instead of laid onto the moving one's events;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection and move together) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
@@ -39,6 +40,8 @@ _GONE = -1  # merged or expired during an update; removed before it returns
 Box = tuple[float, float, float, float]  # x, y, w, h
 # predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2) -> the boxes placed on the events
 Layout = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# boxes (N x 4) -> the events in each since the last update
+Counts = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -63,6 +66,9 @@ class AssociationParams:
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
+    # a track sharing a detection is tested for a stop on the part of its box the others leave, if this big
+    alone_share: float = 0.5
+    still_contrast: float = 0.1  # ... and stopped if that part has under this share of the busiest other's events/px
     # a track left alone in a detection much bigger than itself takes it whole; off where detections
     # are grown from the tracks' own predictions (CamShift), which would feed a track its own growth
     take_whole: bool = True
@@ -105,9 +111,14 @@ def intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _overlap(a: Box, b: Box) -> float:
-    iw = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
-    ih = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
+    _, _, iw, ih = _cut(a, b)
     return iw * ih if iw > 0 and ih > 0 else 0.0
+
+
+def _cut(a: Box, b: Box) -> Box:
+    """The intersection of two boxes (w or h <= 0 when they do not overlap)."""
+    x0, y0 = max(a[0], b[0]), max(a[1], b[1])
+    return x0, y0, min(a[0] + a[2], b[0] + b[2]) - x0, min(a[1] + a[3], b[1] + b[3]) - y0
 
 
 def _area(box: Box) -> float:
@@ -132,11 +143,11 @@ class MultiObjectTracker:
         self.tracks: list[Track] = []
         self._next_id = 1
 
-    def update(self, t_us: int, boxes: np.ndarray, fresh: np.ndarray | None = None,
+    def update(self, t_us: int, boxes: np.ndarray, fresh: Counts | None = None,
                layout: Layout | None = None) -> list[Track]:
-        """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known the new events
-        in each since the last update, and how to place tracks that share a detection (else they
-        move by prediction)."""
+        """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known how to count the
+        new events in a box since the last update, and how to place tracks that share a detection
+        (else they move by prediction)."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
@@ -171,14 +182,20 @@ class MultiObjectTracker:
                 if ti in pieces and t_us - self.tracks[ti].first_seen_us < p.young_us:
                     pieces[ti].append(di)  # a target first seen in pieces: its box grows to hold them
                 used.add(di)
+        new_in_dets = fresh(np.asarray(dets, np.float32)) if fresh is not None and dets else []
         for ti, members in pieces.items():
-            if fresh is not None and self._fading(self.tracks[ti], float(sum(fresh[di] for di in members)), t_us):
-                continue
+            if fresh is not None:
+                new_events = float(sum(new_in_dets[di] for di in members))
+                if self._held(self.tracks[ti], new_events, t_us):
+                    continue
+                self._learn_rate(self.tracks[ti], new_events)
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         for members in shared.values():
-            boxes_in = np.asarray([pred[ti] for ti in members], np.float32)
+            if fresh is not None:  # one that stopped beside a moving one is held, not laid onto its events
+                members = [ti for ti in members if not self._stopped_beside(ti, members, pred, fresh, t_us)]
+            boxes_in = np.asarray([pred[ti] for ti in members], np.float32).reshape(-1, 4)
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
-            placed = layout(boxes_in, own) if layout is not None else boxes_in
+            placed = layout(boxes_in, own) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
                 self._place(self.tracks[ti], (box[0], box[1], box[2], box[3]), t_us)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
@@ -250,18 +267,41 @@ class MultiObjectTracker:
         its place in a shared blob)."""
         tr.box, tr.t_us, tr.last_seen_us = box, t_us, t_us
 
-    def _fading(self, tr: Track, new_events: float, t_us: int) -> bool:
-        """True, and the track held where it is, if its detection has far fewer new events than
-        usual: the target stopped and the detection is its fading image. Otherwise the usual count
-        learns from this one."""
+    def _held(self, tr: Track, new_events: float, t_us: int, share: float = 1.0) -> bool:
+        """True, and the track held where it is, if its detection (or the `share` of its box no other
+        track covers) has far fewer new events than usual: the target stopped and what is seen
+        there is its fading image."""
         p = self.params
-        if tr.state == TRACKED and new_events < p.stop_ratio * tr.rate:
+        if tr.state == TRACKED and new_events < p.stop_ratio * share * tr.rate:
             tr.rate *= p.rate_decay
             tr.vel = (0.0, 0.0)
             tr.t_us = tr.last_seen_us = t_us
             return True
-        tr.rate = new_events if tr.rate == 0 else (1 - p.rate_gain) * tr.rate + p.rate_gain * new_events
         return False
+
+    def _learn_rate(self, tr: Track, new_events: float) -> None:
+        """The track's usual count of new events learns from its detection's, while it moves."""
+        g = self.params.rate_gain
+        tr.rate = new_events if tr.rate == 0 else (1 - g) * tr.rate + g * new_events
+
+    def _stopped_beside(self, ti: int, members: list[int], pred: list[Box], fresh: Counts, t_us: int) -> bool:
+        """`_held` for a track sharing a detection: the target stopped beside a moving one if the part
+        of its box no other member covers (when big enough to tell) has far fewer new events than
+        usual and than the busiest other member, per pixel. The others' events would hide its stop
+        from a count over the detection, and the layout would lay it onto them."""
+        p = self.params
+        box, others = pred[ti], [pred[k] for k in members if k != ti]
+        cuts = [c for c in (_cut(box, o) for o in others) if c[2] > 0 and c[3] > 0]
+        share = 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
+        tr = self.tracks[ti]
+        if share < p.alone_share:  # too little of it left to tell: one already stopped stays so
+            return tr.vel == (0.0, 0.0) and self._held(tr, 0.0, t_us)
+        counts = fresh(np.asarray([box, *cuts, *others], np.float32)).tolist()
+        alone = max(counts[0] - sum(counts[1:1 + len(cuts)]), 0.0)
+        busiest = max(n / _area(o) for n, o in zip(counts[1 + len(cuts):], others, strict=True))
+        if alone >= p.still_contrast * busiest * share * _area(box):
+            return False
+        return self._held(tr, alone, t_us, share)
 
     def _correct(self, tr: Track, box: Box, t_us: int) -> None:
         """A measured box: velocity from the centre's move, size smoothed."""

@@ -111,8 +111,9 @@ class ObjectTracker:
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
         tracks = self.association.update(
-            t_us, boxes, fresh=self.fresh.take(boxes),
+            t_us, boxes, fresh=self.fresh.count,
             layout=lambda preds, sizes: fit_layout(image, preds, self.params.layout, sizes))
+        self.fresh.reset()
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
