@@ -294,9 +294,10 @@ class MultiObjectTracker:
         cuts = [c for c in (_cut(box, o) for o in others) if c[2] > 0 and c[3] > 0]
         share = 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
         tr = self.tracks[ti]
-        if share < p.alone_share:  # too little of it left to tell: one already stopped stays so
-            return tr.vel == (0.0, 0.0) and self._held(tr, 0.0, t_us)
         counts = fresh(np.asarray([box, *cuts, *others], np.float32)).tolist()
+        if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
+            # its box has more new events than it had itself while it moved
+            return tr.vel == (0.0, 0.0) and counts[0] < tr.rate and self._held(tr, 0.0, t_us)
         alone = max(counts[0] - sum(counts[1:1 + len(cuts)]), 0.0)
         busiest = max(n / _area(o) for n, o in zip(counts[1 + len(cuts):], others, strict=True))
         if alone >= p.still_contrast * busiest * share * _area(box):
