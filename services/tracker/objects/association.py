@@ -186,13 +186,22 @@ class MultiObjectTracker:
         for ti, members in pieces.items():
             if fresh is not None:
                 new_events = float(sum(new_in_dets[di] for di in members))
-                if self._held(self.tracks[ti], new_events, t_us):
+                if self._stopped(self.tracks[ti], new_events):
+                    self._hold(self.tracks[ti], t_us)
                     continue
                 self._learn_rate(self.tracks[ti], new_events)
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         for members in shared.values():
             if fresh is not None:  # one that stopped beside a moving one is held, not laid onto its events
-                members = [ti for ti in members if not self._stopped_beside(ti, members, pred, fresh, t_us)]
+                boxes = [pred[ti] for ti in members]
+                new_in = fresh(np.asarray(boxes, np.float32)).tolist()
+                moving = []
+                for k, ti in enumerate(members):
+                    if self._stopped_beside(self.tracks[ti], k, boxes, new_in, fresh):
+                        self._hold(self.tracks[ti], t_us)
+                    else:
+                        moving.append(ti)
+                members = moving
             boxes_in = np.asarray([pred[ti] for ti in members], np.float32).reshape(-1, 4)
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
             placed = layout(boxes_in, own) if layout is not None and members else boxes_in
@@ -267,42 +276,39 @@ class MultiObjectTracker:
         its place in a shared blob)."""
         tr.box, tr.t_us, tr.last_seen_us = box, t_us, t_us
 
-    def _held(self, tr: Track, new_events: float, t_us: int, share: float = 1.0) -> bool:
-        """True, and the track held where it is, if its detection (or the `share` of its box no other
-        track covers) has far fewer new events than usual: the target stopped and what is seen
-        there is its fading image."""
-        p = self.params
-        if tr.state == TRACKED and new_events < p.stop_ratio * share * tr.rate:
-            tr.rate *= p.rate_decay
-            tr.vel = (0.0, 0.0)
-            tr.t_us = tr.last_seen_us = t_us
-            return True
-        return False
+    def _stopped(self, tr: Track, new_events: float, share: float = 1.0) -> bool:
+        """Whether its detection (or the `share` of its box no other track covers) has far fewer new
+        events than usual: the target stopped and what is seen there is its fading image."""
+        return tr.state == TRACKED and new_events < self.params.stop_ratio * share * tr.rate
+
+    def _hold(self, tr: Track, t_us: int) -> None:
+        """The track held where it is: a stopped target."""
+        tr.rate *= self.params.rate_decay
+        tr.vel = (0.0, 0.0)
+        tr.t_us = tr.last_seen_us = t_us
 
     def _learn_rate(self, tr: Track, new_events: float) -> None:
         """The track's usual count of new events learns from its detection's, while it moves."""
         g = self.params.rate_gain
         tr.rate = new_events if tr.rate == 0 else (1 - g) * tr.rate + g * new_events
 
-    def _stopped_beside(self, ti: int, members: list[int], pred: list[Box], fresh: Counts, t_us: int) -> bool:
-        """`_held` for a track sharing a detection: the target stopped beside a moving one if the part
-        of its box no other member covers (when big enough to tell) has far fewer new events than
-        usual and than the busiest other member, per pixel. The others' events would hide its stop
-        from a count over the detection, and the layout would lay it onto them."""
+    def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float], fresh: Counts) -> bool:
+        """`_stopped` for the `k`th of the tracks sharing a detection (their boxes and new events): the
+        target stopped beside a moving one if the part of its box no other covers (when big enough
+        to tell) has far fewer new events than usual and than the busiest other, per pixel. The
+        others' events would hide its stop from a count over the detection, and the layout would
+        lay it onto them."""
         p = self.params
-        box, others = pred[ti], [pred[k] for k in members if k != ti]
-        cuts = [c for c in (_cut(box, o) for o in others) if c[2] > 0 and c[3] > 0]
+        box = boxes[k]
+        others = [(b, n) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k]
+        cuts = [c for c in (_cut(box, b) for b, _ in others) if c[2] > 0 and c[3] > 0]
         share = 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
-        tr = self.tracks[ti]
-        counts = fresh(np.asarray([box, *cuts, *others], np.float32)).tolist()
         if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
             # its box has more new events than it had itself while it moved
-            return tr.vel == (0.0, 0.0) and counts[0] < tr.rate and self._held(tr, 0.0, t_us)
-        alone = max(counts[0] - sum(counts[1:1 + len(cuts)]), 0.0)
-        busiest = max(n / _area(o) for n, o in zip(counts[1 + len(cuts):], others, strict=True))
-        if alone >= p.still_contrast * busiest * share * _area(box):
-            return False
-        return self._held(tr, alone, t_us, share)
+            return tr.state == TRACKED and tr.vel == (0.0, 0.0) and new_in[k] < tr.rate
+        alone = max(new_in[k] - float(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).sum()), 0.0)
+        busiest = max(n / _area(b) for b, n in others)
+        return alone < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, alone, share)
 
     def _correct(self, tr: Track, box: Box, t_us: int) -> None:
         """A measured box: velocity from the centre's move, size smoothed."""
