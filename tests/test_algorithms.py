@@ -50,10 +50,15 @@ def test_simulator_truth_leaves_out_targets_hidden_behind_nearer_ones() -> None:
     for obj, x in ((near, 100.0), (far, 110.0)):
         obj.xs[:], obj.ys[:] = x, 100.0
     assert scene.boxes(0)[0].tolist() == [near.ident]  # far is wholly behind near
+    ids, boxes = scene.unscored(0)  # ... so it is a "don't care" region, not a target
+    assert ids.tolist() == [far.ident] and boxes.tolist() == [[110, 100, 40, 40]]
     far.xs[:] = 160.0  # 20 of its 40 px columns out from behind near
     ids, boxes, _ = scene.boxes(0)
     assert ids.tolist() == sorted([near.ident, far.ident])
     assert boxes[ids.tolist().index(far.ident)].tolist() == [160, 100, 40, 40]  # the whole box, not its visible part
+    assert len(scene.unscored(0)[0]) == 0
+    far.xs[:] = -35.0  # 5 of its 40 px columns in the image: under a quarter, not scored
+    assert scene.boxes(0)[0].tolist() == [near.ident] and scene.unscored(0)[1].tolist() == [[0, 100, 5, 40]]
 
 
 def test_packetizer_slices_caps_and_keeps_every_event() -> None:

@@ -190,7 +190,7 @@ def test_sim_and_info_commands(tmp_path: Path) -> None:
     info = subprocess.run(etam_argv("info", str(out), "--json"), capture_output=True, text=True, timeout=60)
     facts = json.loads(info.stdout)
     assert facts["events"] == summary["events"] > 10_000 and facts["format"] == "etam-hdf5"
-    assert (facts["width"], facts["height"]) == (346, 260) and facts["ground_truth"] == ["boxes", "boxes_3d"]
+    assert (facts["width"], facts["height"]) == (346, 260) and facts["ground_truth"] == ["boxes", "boxes_3d", "ignore"]
     with open_recording(out) as rec:  # depth from size holds in the truth: w_px = f * size_m / z
         boxes, solid = rec.truth.boxes, rec.truth.boxes_3d
         inside = (boxes[:, 2] > 0) & (boxes[:, 2] + boxes[:, 4] < 345)  # not clipped at the image border

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.camera.formats import open_recording
 from services.tracker.evaluation import evaluate
 from tests.conftest import etam_argv
 
@@ -42,6 +43,21 @@ def test_misses_false_boxes_shifts_stale_frames_and_id_switches_are_counted() ->
     assert evaluate(np.zeros((0, 6)), truth).op50 == 0.0
 
 
+def test_boxes_on_dont_care_regions_are_not_false_and_empty_frames_count() -> None:
+    truth = _truth()
+    one = truth[truth[:, 1] == 1]
+    ignore = truth[truth[:, 1] == 2]  # object 2 is in the image but not scored (mostly hidden, say)
+    pred = truth.copy()
+    assert evaluate(pred, one).false_positives_per_s == pytest.approx(1.0)  # the box on object 2 is false ...
+    assert evaluate(pred, one, ignore=ignore).false_positives_per_s == 0.0  # ... unless object 2 is "don't care"
+    shifted = pred.copy()
+    shifted[shifted[:, 1] == 2, 3] += 25  # now mostly off it: false again
+    assert evaluate(shifted, one, ignore=ignore).false_positives_per_s == pytest.approx(1.0)
+    gap = one[(one[:, 0] < 200_000) | (one[:, 0] >= 600_000)]  # object 1 out of view for 20 frames
+    s = evaluate(pred[pred[:, 1] == 1], gap)
+    assert s.frames == 50 and s.false_positives_per_s == pytest.approx(20 / 50)  # its track there is false
+
+
 
 def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot() -> None:
     # two targets one on top of the other; track 5 always on object 1, track 6 between them, nearer
@@ -62,6 +78,8 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     h5, csv = tmp_path / "o.h5", tmp_path / "tracks.csv"
     subprocess.run(etam_argv("sim", "objects", "--out", str(h5), "--duration", "4", "--seed", "3", "--json"),
                    check=True, capture_output=True, timeout=120)
+    with open_recording(h5) as rec:  # targets coming in are "don't care" until a quarter is in view
+        assert rec.truth.ignore.shape[1] == 6 and len(rec.truth.ignore) > 0
     png = tmp_path / "boxes.png"
     run = subprocess.run(etam_argv("track", str(h5), "--out", str(csv), "--snapshots", str(png), "--json"),
                          capture_output=True, text=True, timeout=120)

@@ -38,7 +38,7 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
 
 def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm) -> dict[str, int]:
     """One camera's events and ground truth into `writer`; its counts."""
-    boxes, boxes_3d, poses, omega, depth_t, depth_maps = [], [], [], [], [], []
+    boxes, boxes_3d, ignore, poses, omega, depth_t, depth_maps = [], [], [], [], [], [], []
     writer.write_calibration(source.calibration)
     for since in range(0, end_us, STEP_US):
         until = min(since + STEP_US, end_us)
@@ -46,6 +46,8 @@ def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm
         for t_us, ids, bxs, solid in source.truth(since, until):
             boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
             boxes_3d.extend(solid.tolist())
+        for t_us, ids, bxs in source.unscored(since, until):
+            ignore.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
         for t_us, p, q, w in source.poses(since, until):
             poses.append([t_us / 1e6, *p, *q])
             omega.append([t_us / 1e6, *w])
@@ -56,6 +58,7 @@ def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm
     if boxes:
         writer.write_truth("boxes", np.asarray(boxes, np.float64).reshape(-1, 6))
         writer.write_truth("boxes_3d", np.asarray(boxes_3d, np.float64).reshape(-1, 4))
+        writer.write_truth("ignore", np.asarray(ignore, np.float64).reshape(-1, 6))
     if poses:
         writer.write_truth("poses", np.asarray(poses, np.float64))
         writer.write_truth("omega", np.asarray(omega, np.float64))

@@ -96,6 +96,12 @@ class SimSource:
             return []
         return [(t, *self.scene.boxes(t)) for t in self._truth_times(since_us, until_us)]
 
+    def unscored(self, since_us: int, until_us: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """The objects in the image that `truth` leaves out (mostly out of view or hidden): t_us, ids, boxes."""
+        if not isinstance(self.scene, ObjectsScene):
+            return []
+        return [(t, *self.scene.unscored(t)) for t in self._truth_times(since_us, until_us)]
+
     def poses(self, since_us: int, until_us: int) -> list[TruthPose]:
         if not hasattr(self.scene, "pose"):
             return []

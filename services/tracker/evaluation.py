@@ -9,7 +9,10 @@ of overlapping targets swap matches from frame to frame and count as switches. F
 - success AUC: the mean, over IoU thresholds 0, 0.05, ..., 1, of the share matched above it;
 - precision@20: share of truth boxes whose match's centre is within 20 px;
 - false positives per second: predicted boxes matching no truth box at IoU >= 0.5, counted per
-  truth frame and weighted by the frame period, i.e. the mean number of false boxes on screen;
+  truth frame and weighted by the frame period, i.e. the mean number of false boxes on screen; a
+  box at least half inside a "don't care" box (an object in the image the truth does not score:
+  mostly out of view or hidden, as MOT's ignore regions) is not counted. Frames with no truth box
+  between the first and last count too (any box there is false);
 - id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes.
 """
 
@@ -20,7 +23,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from services.tracker.objects.association import iou
+from services.tracker.objects.association import intersection, iou
 
 
 @dataclass
@@ -67,17 +70,38 @@ def _match(objs: np.ndarray, idents: np.ndarray, overlap: np.ndarray,
     return pairs
 
 
-def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> TrackingScores:
-    """Scores of predicted rows against truth rows (both N x 6: t_us, id, x, y, w, h)."""
+def _truth_frames(truth: np.ndarray, ignore: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Frame times with their truth rows and "don't care" rows; frames missing from the truth's
+    period between its first and last (nothing to score there) are filled in empty."""
+    times = np.unique(np.concatenate([truth[:, 0], ignore[:, 0]]))
+    if len(times) > 2:
+        period = float(np.median(np.diff(times)))
+        fill = [np.arange(a + period, b - period / 2, period) for a, b in zip(times[:-1], times[1:], strict=True)
+                if b - a > 1.5 * period]
+        times = np.unique(np.concatenate([times, *fill]))
+
+    def rows_at(table: np.ndarray) -> list[np.ndarray]:
+        table = table[np.argsort(table[:, 0], kind="stable")]
+        bounds = np.searchsorted(table[:, 0], times, side="left"), np.searchsorted(table[:, 0], times, side="right")
+        return [table[a:b] for a, b in zip(*bounds, strict=True)]
+
+    return times, rows_at(truth), rows_at(ignore)
+
+
+def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
+             ignore: np.ndarray | None = None) -> TrackingScores:
+    """Scores of predicted rows against truth rows (both N x 6: t_us, id, x, y, w, h), boxes inside
+    the `ignore` rows (same layout) of their frame being neither hits nor false."""
     pred, truth = np.asarray(pred, np.float64).reshape(-1, 6), np.asarray(truth, np.float64).reshape(-1, 6)
-    t_truth, truth_frames = _frames(truth)
+    ignore = np.zeros((0, 6)) if ignore is None else np.asarray(ignore, np.float64).reshape(-1, 6)
+    t_truth, truth_frames, ignore_frames = _truth_frames(truth, ignore)
     t_pred, pred_frames = _frames(pred)
     ious: list[float] = []
     centre_err: list[float] = []
     false_boxes = 0
     last_match: dict[int, int] = {}
     switches = 0
-    for t, gt in zip(t_truth, truth_frames, strict=True):
+    for t, gt, dont_care in zip(t_truth, truth_frames, ignore_frames, strict=True):
         k = np.searchsorted(t_pred, t, side="right") - 1
         pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
         overlap = iou(gt[:, 2:6], pr[:, 2:6]) if len(pr) else np.zeros((len(gt), 0))
@@ -97,7 +121,11 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000) -> T
                 last_match[obj] = ident
         ious.extend(best.tolist())
         centre_err.extend(err.tolist())
-        false_boxes += int((~matched_pred).sum())
+        false = pr[~matched_pred, 2:6]
+        if len(dont_care) and len(false):
+            inside = intersection(false, dont_care[:, 2:6]).max(axis=1) / np.maximum(false[:, 2] * false[:, 3], 1e-6)
+            false = false[inside < 0.5]
+        false_boxes += len(false)
     n = len(ious)
     iou_arr, err_arr = np.asarray(ious), np.asarray(centre_err)
     period_s = float(np.median(np.diff(t_truth))) / 1e6 if len(t_truth) > 1 else 0.0

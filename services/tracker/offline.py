@@ -78,12 +78,12 @@ def eval_tracking(pred: Path, truth: Path) -> dict[str, Any]:
     predicted = read_tracks(pred)
     try:
         with open_recording(truth) as rec:
-            boxes = rec.truth.boxes
+            boxes, ignore = rec.truth.boxes, rec.truth.ignore
     except FormatError as exc:
         raise ValueError(str(exc)) from None
     if boxes is None:
         raise ValueError(f"{truth}: has no ground-truth boxes (/truth/boxes)")
-    return {"pred": str(pred), "truth": str(truth), **evaluate(predicted, boxes).as_dict()}
+    return {"pred": str(pred), "truth": str(truth), **evaluate(predicted, boxes, ignore=ignore).as_dict()}
 
 
 def snapshots(src: Path, tracks: np.ndarray, out: Path, n: int = 6, window_us: int = 30_000) -> None:

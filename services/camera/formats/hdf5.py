@@ -16,7 +16,8 @@ import h5py
 import numpy as np
 
 from services.camera.formats.kernels import interleave
-from services.camera.formats.recording import CHUNK_EVENTS, Calibration, EventWriter, FormatError, Recording, Truth
+from services.camera.formats.recording import (CHUNK_EVENTS, TRUTH_TABLES, Calibration, EventWriter, FormatError,
+                                              Recording, Truth)
 from services.messages import EVENT_DTYPE
 
 MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -61,7 +62,7 @@ class H5Recording(Recording):
                 np.asarray(dist[:], np.float64) if dist is not None else np.zeros(0),
                 np.asarray(f["calibration/T_body_cam"][:], np.float64) if "calibration/T_body_cam" in f else None,
             )
-        for name in ("poses", "boxes", "boxes_3d", "omega"):
+        for name in TRUTH_TABLES:
             if f"truth/{name}" in f:
                 setattr(self.truth, name, np.asarray(f[f"truth/{name}"][:]))
         if "truth/depth/t" in f and "truth/depth/maps" in f:
@@ -129,7 +130,7 @@ class H5Writer(EventWriter):
 
     def copy_truth(self, truth: Truth) -> None:
         """Every ground truth `truth` holds, as read from another file."""
-        for name in ("poses", "boxes", "boxes_3d", "omega"):
+        for name in TRUTH_TABLES:
             if getattr(truth, name) is not None:
                 self.write_truth(name, getattr(truth, name))
         if truth.depth_t is not None and truth.depth_maps is not None:

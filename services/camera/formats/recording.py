@@ -36,6 +36,9 @@ class Calibration:
     T_body_cam: np.ndarray | None = None
 
 
+TRUTH_TABLES = ("poses", "boxes", "boxes_3d", "ignore", "omega")  # the tables of `Truth`, as named in files
+
+
 @dataclass
 class Truth:
     """Ground truth a file may carry (DESIGN.md section 7 layouts), each None when absent."""
@@ -43,12 +46,13 @@ class Truth:
     poses: np.ndarray | None = None  # N x 8 TUM rows (t_s, tx ty tz, qx qy qz qw), T_world_cam
     boxes: np.ndarray | None = None  # M x 6 (t_us, id, x, y, w, h)
     boxes_3d: np.ndarray | None = None  # M x 4 beside `boxes`: object centre x y z (m, camera frame), width (m)
+    ignore: np.ndarray | None = None  # K x 6 like `boxes`: objects in the image left unscored ("don't care")
     omega: np.ndarray | None = None  # N x 4 (t_s, wx wy wz rad/s)
     depth_t: np.ndarray | None = None  # N frame times (us) of ...
     depth_maps: Sequence[np.ndarray] | None = None  # ... N x H x W metric depth (float32, NaN unknown), read on demand
 
     def present(self) -> list[str]:
-        names = [name for name in ("poses", "boxes", "boxes_3d", "omega") if getattr(self, name) is not None]
+        names = [name for name in TRUTH_TABLES if getattr(self, name) is not None]
         return names + (["depth"] if self.depth_t is not None else [])
 
 
