@@ -27,14 +27,17 @@ per-call cost on arrays of three boxes was most of an update's time.
 from __future__ import annotations
 
 import math
+import statistics
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 TENTATIVE, TRACKED, LOST = 0, 1, 2
 LEFT, TOP, RIGHT, BOTTOM = 1, 2, 4, 8  # the image borders a box touches, as bits
 CUT_X, CUT_Y = LEFT | RIGHT, TOP | BOTTOM  # borders that cut a box's width, its height
+SIZE_MEMORY = 32  # measurements of a track's size kept for re-identification
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
@@ -87,8 +90,15 @@ class Track:
     score: float = 0.3
     rate: float = 0.0  # usual new events per update in its detection, while it moves
     own_size: tuple[float, float] | None = None  # w, h when it last had a detection of its own
-    # its own w (h) when its box last cleared the left and right (top and bottom) borders
-    full_size: tuple[float, float] | None = None
+    # its own widths (heights) measured while its box cleared the left and right (top and bottom) borders,
+    # the latest `size_memory`: their median is the size it is known by when it comes back
+    widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
+    heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
+
+    def full_size(self, axis: int) -> float | None:
+        """Its usual width (axis 0) or height (1) in full view, if ever seen so."""
+        sizes = self.heights if axis else self.widths
+        return statistics.median(sizes) if sizes else None
 
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
@@ -328,8 +338,11 @@ class MultiObjectTracker:
             tr.box = (cx - w / 2, cy - h / 2, w, h)
         tr.hits += 1
         tr.own_size = tr.box[2], tr.box[3]
-        sides, full = self._sides(tr.box), tr.full_size or tr.own_size
-        tr.full_size = full[0] if sides & CUT_X else tr.box[2], full[1] if sides & CUT_Y else tr.box[3]
+        sides = self._sides(tr.box)
+        if not sides & CUT_X:
+            tr.widths.append(tr.box[2])
+        if not sides & CUT_Y:
+            tr.heights.append(tr.box[3])
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
@@ -378,9 +391,9 @@ class MultiObjectTracker:
             return
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
         p = self.params
-        misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(tr.full_size[axis], 1.0))), i)
+        misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)
                         for i, tr in enumerate(self.tracks)
-                        if tr.state == LOST and tr.full_size and self._sides(tr.box) & sides)
+                        if tr.state == LOST and self._sides(tr.box) & sides and (size := tr.full_size(axis)))
         misfit = [m for m in misfit if m[0] < math.log(p.reid_size_ratio)]
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = self.tracks[misfit[0][1]]
