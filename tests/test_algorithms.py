@@ -341,6 +341,20 @@ def test_a_target_that_stops_beside_a_moving_one_is_held_where_it_stopped() -> N
     assert by_id[1].box[0] == pytest.approx(10 + 3 * 79, abs=4)
 
 
+def test_a_target_that_stays_hidden_behind_a_nearer_one_is_lost_after_the_hold() -> None:
+    """A small target goes behind a big, nearer one moving its way; while hidden, the blob is the big
+    one's. Placed there, the small track would ride on the big one's events for as long as it stays."""
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(520):  # the big one catches up with the small one (30 and 10 px/s), covers 80% of it from
+        # i = 180 and hides it from i = 225
+        small, big = [150 + 0.1 * i, 120, 20, 20], [10 + 0.3 * i, 90, 120, 80]
+        hidden = small[0] + 20 <= big[0] + 115
+        tracks = mot.update(i * 10_000, np.array([big] if hidden else [big, small], np.float32))
+        if i == 350:  # covered 1.7 s: still held
+            assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, TRACKED)]
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]  # the small one lost, not carried along
+
+
 def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45

@@ -5,7 +5,8 @@ knew it was lost. Here:
 - a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone;
-  a target hidden behind another coasts at its velocity; both stay `TRACKED` for `hold_us`; one
+  a target hidden behind another coasts at its velocity, or in a blob it shares with the nearer
+  one is still placed but counts as unseen; all stay `TRACKED` for `hold_us`; one
   that leaves the image is lost, and a target confirmed at that border with its size (on the axis
   the border does not cut) takes its id back, wherever along the border it comes in, unless two
   lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
@@ -59,6 +60,8 @@ class AssociationParams:
     reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
     # of two lost tracks that fit, the better one's size error is under this share of the other's
     reid_margin: float = 0.5
+    # a track sharing a detection with less than this share of its box outside the others' is hidden behind them
+    hidden_share: float = 0.2
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
@@ -139,6 +142,12 @@ def _centre(box: Box) -> tuple[float, float]:
     return box[0] + box[2] / 2, box[1] + box[3] / 2
 
 
+def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
+    """The parts of a box that other boxes cover, and the share of it they leave."""
+    cuts = [c for c in (_cut(box, b) for b in others) if c[2] > 0 and c[3] > 0]
+    return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
+
+
 def _union(boxes: list[Box]) -> Box:
     x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
     return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
@@ -201,7 +210,9 @@ class MultiObjectTracker:
                     continue
                 self._learn_rate(self.tracks[ti], new_events)
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
+        hidden: set[int] = set()
         for members in shared.values():
+            hidden |= self._covered(members, pred)
             if fresh is not None:  # one that stopped beside a moving one is held, not laid onto its events
                 boxes = [pred[ti] for ti in members]
                 new_in = fresh(np.asarray(boxes, np.float32)).tolist()
@@ -216,7 +227,12 @@ class MultiObjectTracker:
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
             placed = layout(boxes_in, own) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
+                seen = self.tracks[ti].last_seen_us
                 self._place(self.tracks[ti], (box[0], box[1], box[2], box[3]), t_us)
+                if ti in hidden:  # not seen: lost once hidden for `hold_us`
+                    self.tracks[ti].last_seen_us = seen
+                    if t_us - seen > p.hold_us:
+                        self.tracks[ti].state = LOST
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
@@ -286,6 +302,13 @@ class MultiObjectTracker:
         its place in a shared blob)."""
         tr.box, tr.t_us, tr.last_seen_us = box, t_us, t_us
 
+    def _covered(self, members: list[int], pred: list[Box]) -> set[int]:
+        """Of tracks sharing a detection, those whose box the others' boxes mostly cover (all but the
+        biggest): targets gone behind a nearer one. They are still placed, but count as unseen, so one
+        that stays hidden is lost after `hold_us` instead of riding on the nearer one's events."""
+        return {ti for ti in sorted(members, key=lambda i: _area(pred[i]))[:-1]
+                if _alone(pred[ti], [pred[o] for o in members if o != ti])[1] < self.params.hidden_share}
+
     def _stopped(self, tr: Track, new_events: float, share: float = 1.0) -> bool:
         """Whether its detection (or the `share` of its box no other track covers) has far fewer new
         events than usual: the target stopped and what is seen there is its fading image."""
@@ -311,8 +334,7 @@ class MultiObjectTracker:
         p = self.params
         box = boxes[k]
         others = [(b, n) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k]
-        cuts = [c for c in (_cut(box, b) for b, _ in others) if c[2] > 0 and c[3] > 0]
-        share = 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
+        cuts, share = _alone(box, [b for b, _ in others])
         if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
             # its box has more new events than it had itself while it moved
             return tr.state == TRACKED and tr.vel == (0.0, 0.0) and new_in[k] < tr.rate
