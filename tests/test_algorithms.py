@@ -192,7 +192,8 @@ def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> Non
 
 
 def test_association_keeps_two_targets_travelling_side_by_side_apart() -> None:
-    """Two targets moving the same way at 100 and 125 px/s are one blob for a while: still two targets."""
+    """Two targets moving the same way at 100 and 125 px/s are one blob for a while: still two targets;
+    so are two still ones side by side."""
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(90):
         a, b = [20 + 1.0 * i, 100, 30, 30], [20 + 1.25 * i, 134, 30, 30]
@@ -202,6 +203,11 @@ def test_association_keeps_two_targets_travelling_side_by_side_apart() -> None:
     by_id = {t.ident: t for t in tracks if t.state == TRACKED}
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[1] < by_id[2].box[1]  # each on its own target
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(80):  # two still targets 10 px apart, one blob from i = 40: alike in motion, but not one
+        boxes = [[100, 100, 30, 30], [140, 100, 30, 30]] if i < 40 else [[100, 100, 70, 30]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1, 2]
 
 
 def test_key_counter_counts_gaps_and_windows() -> None:

@@ -15,7 +15,7 @@ knew it was lost. Here:
   on its events (see `layout.py`); one that stops there, told by the new events in the part of its
   box the others leave, is held instead of laid onto the moving one's events;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
-  to be one target (they share a detection and move together) merge into the oldest, and a track
+  to be one target (they share a detection, move together and overlap) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
   takes that detection whole;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
@@ -68,6 +68,7 @@ class AssociationParams:
     # tracks in one detection moving within this of each other are one target seen in pieces; looser, it
     # would fold two targets travelling side by side into one
     same_velocity_px_s: float = 15.0
+    alike_iou: float = 0.05  # ... and overlapping by this IoU: two still targets side by side move alike too
     young_us: int = 300_000  # a track younger than this merges into an older one it shares with
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
@@ -134,6 +135,11 @@ def _cut(a: Box, b: Box) -> Box:
     return x0, y0, min(a[0] + a[2], b[0] + b[2]) - x0, min(a[1] + a[3], b[1] + b[3]) - y0
 
 
+def _iou(a: Box, b: Box) -> float:
+    inter = _overlap(a, b)
+    return inter / max(a[2] * a[3] + b[2] * b[3] - inter, 1e-6)
+
+
 def _area(box: Box) -> float:
     return max(box[2] * box[3], 1.0)
 
@@ -179,7 +185,7 @@ class MultiObjectTracker:
         for di in range(len(dets)):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)]
             if len(inside) >= 2:
-                members = self._merge_alike(t_us, inside)
+                members = self._merge_alike(t_us, inside, pred)
                 if len(members) >= 2:
                     shared[di] = members
                 elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
@@ -244,9 +250,10 @@ class MultiObjectTracker:
                 self._next_id += 1
         return list(self.tracks)
 
-    def _merge_alike(self, t_us: int, members: list[int]) -> list[int]:
-        """Of tracks sharing one detection, fold each young or same-moving one into the oldest of
-        them (marked `_GONE`, removed after the update); the members left."""
+    def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
+        """Of tracks sharing one detection, fold each young one, or one moving with it and overlapping
+        it, into the oldest of them (marked `_GONE`, removed after the update); the members left. Two
+        still targets side by side move alike (not at all) but barely overlap: they stay two."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -254,7 +261,7 @@ class MultiObjectTracker:
             tr = self.tracks[i]
             for k in keep:
                 older = self.tracks[k]
-                alike = math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
+                alike = math.dist(tr.vel, older.vel) <= p.same_velocity_px_s and _iou(pred[i], pred[k]) >= p.alike_iou
                 if tr.state == TENTATIVE or t_us - tr.first_seen_us < p.young_us or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
