@@ -179,7 +179,7 @@ class ObjectsScene:
         c = (self.width / 2, self.height / 2)
         ids = [obj.ident for _, obj, _ in rows]
         solid = []
-        for _, obj, (x, y, _, _) in rows:
+        for _, obj, _ in rows:
             (x, y), (h, w), z = obj.position(self._phase(t_us)), obj.texture.shape, obj.depth_m
             solid.append(((x + w / 2 - c[0]) * z / self.focal_px, (y + h / 2 - c[1]) * z / self.focal_px, z,
                           obj.size_m))

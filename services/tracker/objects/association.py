@@ -95,7 +95,7 @@ class Track:
     rate: float = 0.0  # usual new events per update in its detection, while it moves
     own_size: tuple[float, float] | None = None  # w, h when it last had a detection of its own
     # its own widths (heights) measured while its box cleared the left and right (top and bottom) borders,
-    # the latest `size_memory`: their median is the size it is known by when it comes back
+    # the latest `SIZE_MEMORY`: their median is the size it is known by when it comes back
     widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
 
@@ -233,12 +233,13 @@ class MultiObjectTracker:
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
             placed = layout(boxes_in, own) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
-                seen = self.tracks[ti].last_seen_us
-                self._place(self.tracks[ti], (box[0], box[1], box[2], box[3]), t_us)
-                if ti in hidden:  # not seen: lost once hidden for `hold_us`
-                    self.tracks[ti].last_seen_us = seen
-                    if t_us - seen > p.hold_us:
-                        self.tracks[ti].state = LOST
+                tr = self.tracks[ti]
+                if ti in hidden:  # placed, but not seen: lost once hidden for `hold_us`
+                    tr.box, tr.t_us = (box[0], box[1], box[2], box[3]), t_us
+                    if t_us - tr.last_seen_us > p.hold_us:
+                        tr.state = LOST
+                else:
+                    self._place(tr, (box[0], box[1], box[2], box[3]), t_us)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
