@@ -16,6 +16,7 @@ import pytest
 import zenoh
 
 from benchmarks import free_port
+from services import keys
 from services.config import ZenohSettings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,7 +60,7 @@ def client_session(endpoint: str) -> zenoh.Session:
 
 def wait_alive(session: zenoh.Session, rig: str, count: int, timeout_s: float = 60) -> None:
     """Until `count` services of `rig` hold their liveliness token (a clean clone's first start compiles kernels)."""
-    wait_for(lambda: len(list(session.liveliness().get(f"etam/{rig}/*/*/alive", timeout=1.0))) == count,
+    wait_for(lambda: len(list(session.liveliness().get(keys.alive(rig), timeout=1.0))) == count,
              timeout_s, f"{count} services' liveliness tokens")
 
 

@@ -177,25 +177,28 @@ class ObjectsScene:
         quarters of that hidden behind nearer objects: a target no camera can see is not scored."""
         rows = [row for row in self._view(t_us) if row[0]]
         c = (self.width / 2, self.height / 2)
-        ids = [obj.ident for _, obj, _ in rows]
-        solid = []
-        for _, obj, _ in rows:
-            (x, y), (h, w), z = obj.position(self._phase(t_us)), obj.texture.shape, obj.depth_m
+        ids, boxes, solid = [], [], []
+        for _, obj, box, (x, y) in rows:
+            (h, w), z = obj.texture.shape, obj.depth_m
+            ids.append(obj.ident)
+            boxes.append(box)
             solid.append(((x + w / 2 - c[0]) * z / self.focal_px, (y + h / 2 - c[1]) * z / self.focal_px, z,
                           obj.size_m))
         order = np.argsort(ids, kind="stable")
-        return (np.asarray(ids, np.int32)[order], np.asarray([b for _, _, b in rows], np.float32).reshape(-1, 4)[order],
+        return (np.asarray(ids, np.int32)[order], np.asarray(boxes, np.float32).reshape(-1, 4)[order],
                 np.asarray(solid, np.float32).reshape(-1, 4)[order])
 
     def unscored(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
         """Ids and clipped boxes of the objects in the image that `boxes` does not score (mostly out
         of view or hidden): a tracker's box on one is neither a hit nor a false positive (MOT's
         "don't care" regions)."""
-        rows = sorted((obj.ident, box) for scored, obj, box in self._view(t_us) if not scored)
+        rows = sorted((obj.ident, box) for scored, obj, box, _ in self._view(t_us) if not scored)
         return np.asarray([i for i, _ in rows], np.int32), np.asarray([b for _, b in rows], np.float32).reshape(-1, 4)
 
-    def _view(self, t_us: float) -> list[tuple[bool, MovingObject, tuple[float, float, float, float]]]:
-        """Every object with any part in the image: whether it is scored, and its box clipped to the image."""
+    def _view(self, t_us: float) -> list[tuple[bool, MovingObject, tuple[float, float, float, float],
+                                               tuple[float, float]]]:
+        """Every object with any part in the image: whether it is scored, its box clipped to the image,
+        and its top-left corner (unclipped)."""
         ph = self._phase(t_us)
         out = []
         nearer: list[tuple[float, float, float, float]] = []
@@ -206,7 +209,7 @@ class ObjectsScene:
             x1, y1 = min(x + w, self.width), min(y + h, self.height)
             if x1 > x0 and y1 > y0:
                 scored = x1 - x0 >= 0.25 * w and y1 - y0 >= 0.25 * h and _hidden_share((x0, y0, x1, y1), nearer) <= 0.75
-                out.append((scored, obj, (x0, y0, x1 - x0, y1 - y0)))
+                out.append((scored, obj, (x0, y0, x1 - x0, y1 - y0), (x, y)))
             nearer.append((x, y, x + w, y + h))
         return out
 

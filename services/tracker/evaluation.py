@@ -46,9 +46,15 @@ class TrackingScores:
 
 def _frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     """Frame times and the rows of each, from rows sorted or not by time."""
+    times = np.unique(rows[:, 0])
+    return times, _rows_at(rows, times)
+
+
+def _rows_at(rows: np.ndarray, times: np.ndarray) -> list[np.ndarray]:
+    """The rows at each of `times` (none where a time has none)."""
     rows = rows[np.argsort(rows[:, 0], kind="stable")]
-    times, starts = np.unique(rows[:, 0], return_index=True)
-    return times, np.split(rows, starts[1:]) if len(rows) else []
+    lo, hi = np.searchsorted(rows[:, 0], times, side="left"), np.searchsorted(rows[:, 0], times, side="right")
+    return [rows[a:b] for a, b in zip(lo, hi, strict=True)]
 
 
 def _match(objs: np.ndarray, idents: np.ndarray, overlap: np.ndarray,
@@ -79,13 +85,7 @@ def _truth_frames(truth: np.ndarray, ignore: np.ndarray) -> tuple[np.ndarray, li
         fill = [np.arange(a + period, b - period / 2, period) for a, b in zip(times[:-1], times[1:], strict=True)
                 if b - a > 1.5 * period]
         times = np.unique(np.concatenate([times, *fill]))
-
-    def rows_at(table: np.ndarray) -> list[np.ndarray]:
-        table = table[np.argsort(table[:, 0], kind="stable")]
-        bounds = np.searchsorted(table[:, 0], times, side="left"), np.searchsorted(table[:, 0], times, side="right")
-        return [table[a:b] for a, b in zip(*bounds, strict=True)]
-
-    return times, rows_at(truth), rows_at(ignore)
+    return times, _rows_at(truth, times), _rows_at(ignore, times)
 
 
 def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,

@@ -14,7 +14,7 @@ import numpy as np
 
 
 class FreshCounts:
-    """Counts the events accepted since the last `take`, per `cell_px` square."""
+    """Counts the events accepted since the last `reset`, per `2**cell_shift` px square."""
 
     def __init__(self, width: int, height: int, cell_shift: int = 2) -> None:
         self.shift = cell_shift  # cells of 2**shift pixels
