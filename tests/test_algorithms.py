@@ -361,6 +361,32 @@ def test_a_target_that_stays_hidden_behind_a_nearer_one_is_lost_after_the_hold()
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]  # the small one lost, not carried along
 
 
+def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:
+    """A small target crossing in front of a big one has a detection of its own inside the big one's:
+    it follows that detection (here it turns back) rather than being placed as one of a shared blob."""
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(60):  # the small one goes right at 3 px per update, then turns back at i = 30
+        small = [40 + 3 * min(i, 30) - 3 * max(i - 30, 0), 120, 20, 16]
+        tracks = mot.update(i * 10_000, np.array([[60, 100, 100, 80], small], np.float32))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 2] and by_id[2].box[0] == pytest.approx(40 + 3 * 30 - 3 * 29, abs=3)
+    assert by_id[1].box == pytest.approx((60, 100, 100, 80), abs=1)
+
+
+def test_a_target_gone_behind_two_nearer_ones_coasts_at_its_velocity() -> None:
+    """A target that vanishes where two observed targets together cover most of it (neither alone half)
+    is hidden, not stopped: it coasts on, and takes its detection back when it comes out."""
+    mot = MultiObjectTracker(width=346, height=260)
+    upper, lower = [150, 60, 60, 45], [150, 105, 60, 45]  # two still targets one above the other
+    for i in range(80):  # the third goes right at 2 px per update, hidden while under them
+        x = 80 + 2 * i
+        boxes = [upper, lower] + ([[x, 90, 30, 30]] if not 140 <= x <= 190 else [])
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+        if x == 180:
+            assert next(t for t in tracks if t.ident == 3).box[0] == pytest.approx(180, abs=4)
+    assert [t.ident for t in tracks if t.state != LOST] == [1, 2, 3]
+
+
 def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45

@@ -5,15 +5,16 @@ knew it was lost. Here:
 - a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone;
-  a target hidden behind another coasts at its velocity, or in a blob it shares with the nearer
-  one is still placed but counts as unseen; all stay `TRACKED` for `hold_us`; one
-  that leaves the image is lost, and a target confirmed at that border with its size (on the axis
+  a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
+  blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
+  `hold_us`; one that leaves the image is lost, and a target confirmed at that border with its size (on the axis
   the border does not cut) takes its id back, wherever along the border it comes in, unless two
   lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
-- two tracks that share one detection (crossing targets) keep their sizes instead of collapsing
-  onto the merged blob (up to slow corrections towards the events), and a `layout` places them
-  on its events (see `layout.py`); one that stops there, told by the new events in the part of its
-  box the others leave, is held instead of laid onto the moving one's events;
+- two tracks that share one detection (crossing targets; not one with a detection of its own, a
+  small target seen inside a big one's box) keep their sizes instead of collapsing onto the merged
+  blob (up to slow corrections towards the events), and a `layout` places them on its events (see
+  `layout.py`); one that stops there, told by the new events in the part of its box the others
+  leave, is held instead of laid onto the moving one's events;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection, move together and overlap) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
@@ -182,8 +183,12 @@ class MultiObjectTracker:
         # tracks are one target seen in pieces before: merge those, place the rest
         shared: dict[int, list[int]] = {}
         whole: dict[int, int] = {}
+        # a track with a detection of its own (a small target seen inside a big one's) shares no other
+        own = [next((di for di, b in enumerate(dets) if inter[ti][di] >= 0.5 * (_area(a) + _area(b) - inter[ti][di])),
+                    None) for ti, a in enumerate(pred)]
         for di in range(len(dets)):
-            inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)]
+            inside = [ti for ti, a in enumerate(pred)
+                      if live[ti] and inter[ti][di] >= 0.5 * _area(a) and own[ti] in (None, di)]
             if len(inside) >= 2:
                 members = self._merge_alike(t_us, inside, pred)
                 if len(members) >= 2:
@@ -396,7 +401,7 @@ class MultiObjectTracker:
         if self._sides(tr.box):
             tr.state, tr.vel = LOST, (0.0, 0.0)  # waits where it left, to be found again if it comes back
             return
-        hidden = any(_overlap(pred, o) >= 0.5 * pred[2] * pred[3] for o in observed)
+        hidden = _alone(pred, observed)[1] <= 0.5
         if not hidden:
             tr.vel = (0.5 * tr.vel[0], 0.5 * tr.vel[1])  # a target without events has stopped: hold it
             pred = tr.predict(t_us)
