@@ -17,12 +17,13 @@ from services.tracker.objects.tracker import ObjectTracker, TrackerParams
 CSV_HEADER = "t_us,id,x,y,w,h,score"  # DESIGN.md section 7
 
 
-def track(src: Path, out: Path, params: TrackerParams | None = None, progress: bool = True) -> dict[str, Any]:
-    """Run the object tracker over a recording, one update per `update_us` of sensor time, and
-    write the tracked boxes of each update as CSV rows."""
+def track(src: Path, out: Path, params: TrackerParams | None = None, progress: bool = True,
+          tracker_class: type[ObjectTracker] = ObjectTracker) -> dict[str, Any]:
+    """Run the object tracker (or a variant of it, as the benchmark's) over a recording, one update
+    per `update_us` of sensor time, and write the tracked boxes of each update as CSV rows."""
     rows: list[np.ndarray] = []
     with open_recording(src) as rec:
-        tracker = ObjectTracker(rec.width, rec.height, params)
+        tracker = tracker_class(rec.width, rec.height, params)
         step = tracker.params.update_us
         next_us: int | None = None
         n_events = 0

@@ -183,12 +183,13 @@ class MultiObjectTracker:
         # tracks are one target seen in pieces before: merge those, place the rest
         shared: dict[int, list[int]] = {}
         whole: dict[int, int] = {}
-        # a track with a detection of its own (a small target seen inside a big one's) shares no other
-        own = [next((di for di, b in enumerate(dets) if inter[ti][di] >= 0.5 * (_area(a) + _area(b) - inter[ti][di])),
+        # a track with a detection of its own (a small target seen inside a big one's) shares no other, unless
+        # the two are about the same (two tracks on one target, each with a box of it)
+        own = [next((b for di, b in enumerate(dets) if inter[ti][di] >= 0.5 * (_area(a) + _area(b) - inter[ti][di])),
                     None) for ti, a in enumerate(pred)]
-        for di in range(len(dets)):
-            inside = [ti for ti, a in enumerate(pred)
-                      if live[ti] and inter[ti][di] >= 0.5 * _area(a) and own[ti] in (None, di)]
+        for di, det in enumerate(dets):
+            inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
+                      and (own[ti] is None or _iou(own[ti], det) >= 0.5)]
             if len(inside) >= 2:
                 members = self._merge_alike(t_us, inside, pred)
                 if len(members) >= 2:
