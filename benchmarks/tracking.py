@@ -42,7 +42,7 @@ SPEED_SIM = SimParams(contrast=0.06)  # the objects scene at about 1 Mev/s
 def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> list[dict]:
     seeds = seeds[:2] if quick else seeds
     duration_s = 5.0 if quick else 20.0
-    ceilings = {"association on truth boxes": TruthBoxes, "association on merged truth boxes": MergedTruthBoxes}
+    ceilings = {"association on truth boxes": False, "association on merged truth boxes": True}  # merged?
     scores: dict[str, list[dict]] = {m: [] for m in (*METHODS, *ceilings, "dv MeanShiftTracker")}
     rows = []
     with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
@@ -53,9 +53,12 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
                 csv = Path(tmp) / f"{method}{seed}.csv"
                 track(h5, csv, method_params(method), progress=False)
                 scores[method].append(eval_tracking(csv, h5))
-            for name, tracker_class in ceilings.items():
-                csv = Path(tmp) / f"{tracker_class.__name__}{seed}.csv"
-                track(h5, csv, progress=False, tracker_class=_with_truth(tracker_class, h5))
+            with open_recording(h5) as rec:
+                truth = rec.truth.boxes[:, :6].astype(np.float64)
+            for name, merged in ceilings.items():
+                csv = Path(tmp) / f"truth{int(merged)}_{seed}.csv"
+                track(h5, csv, progress=False,
+                      make_tracker=lambda w, h, _, t=truth, m=merged: TruthBoxes(w, h, t, m))
                 scores[name].append(eval_tracking(csv, h5))
             csv = Path(tmp) / f"dv{seed}.csv"
             _dv_track(h5, csv)
@@ -71,36 +74,32 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
 
 
 class TruthBoxes(ObjectTracker):
-    """The default tracker with the simulator's truth boxes (of the latest truth time) as its
-    detections; its events still feed the counts and layouts the association uses."""
+    """The default tracker with the simulator's truth boxes (N x 6 rows, of the latest truth time) as
+    its detections, overlapping ones merged into their union if `merged` (as one blob of events would
+    be); its events still feed the counts and layouts the association uses."""
 
-    truth = np.zeros((0, 6))
-
-    def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
-        times = np.unique(self.truth[:, 0])
-        k = max(int(np.searchsorted(times, t_us, side="right")) - 1, 0)
-        return self.truth[self.truth[:, 0] == times[k], 2:6].astype(np.float32) if len(times) else np.zeros((0, 4))
-
-
-class MergedTruthBoxes(TruthBoxes):
-    """`TruthBoxes` with overlapping boxes merged into their union, as one blob of events would be."""
+    def __init__(self, width: int, height: int, truth: np.ndarray, merged: bool) -> None:
+        super().__init__(width, height, method_params(DEFAULT_METHOD))
+        self.truth, self.times, self.merged = truth, np.unique(truth[:, 0]), merged
 
     def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
-        merged: list[np.ndarray] = []
-        for box in super()._detect(image, t_us):
-            while hit := [i for i, m in enumerate(merged) if intersection(box[None], m[None])[0, 0] > 0]:
-                other = merged.pop(hit[0])
-                x0, y0 = np.minimum(box[:2], other[:2])
-                x1, y1 = np.maximum(box[:2] + box[2:], other[:2] + other[2:])
-                box = np.float32([x0, y0, x1 - x0, y1 - y0])
-            merged.append(box)
-        return np.float32(merged).reshape(-1, 4)
+        if not len(self.times):
+            return np.zeros((0, 4), np.float32)
+        k = max(int(np.searchsorted(self.times, t_us, side="right")) - 1, 0)
+        boxes = self.truth[self.truth[:, 0] == self.times[k], 2:6].astype(np.float32)
+        return _merge_overlapping(boxes) if self.merged else boxes
 
 
-def _with_truth(tracker_class: type[TruthBoxes], h5: Path) -> type[TruthBoxes]:
-    with open_recording(h5) as rec:
-        truth = rec.truth.boxes[:, :6].astype(np.float64)
-    return type(tracker_class.__name__, (tracker_class,), {"truth": truth})
+def _merge_overlapping(boxes: np.ndarray) -> np.ndarray:
+    merged: list[np.ndarray] = []
+    for box in boxes:
+        while hit := [i for i, m in enumerate(merged) if intersection(box[None], m[None])[0, 0] > 0]:
+            other = merged.pop(hit[0])
+            x0, y0 = np.minimum(box[:2], other[:2])
+            x1, y1 = np.maximum(box[:2] + box[2:], other[:2] + other[2:])
+            box = np.float32([x0, y0, x1 - x0, y1 - y0])
+        merged.append(box)
+    return np.float32(merged).reshape(-1, 4)
 
 
 def _packets(h5: Path, window_us: int = PACKET_US) -> tuple[list[tuple[int, np.ndarray]], int, int]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,12 +19,12 @@ CSV_HEADER = "t_us,id,x,y,w,h,score"  # DESIGN.md section 7
 
 
 def track(src: Path, out: Path, params: TrackerParams | None = None, progress: bool = True,
-          tracker_class: type[ObjectTracker] = ObjectTracker) -> dict[str, Any]:
+          make_tracker: Callable[[int, int, TrackerParams | None], ObjectTracker] = ObjectTracker) -> dict[str, Any]:
     """Run the object tracker (or a variant of it, as the benchmark's) over a recording, one update
     per `update_us` of sensor time, and write the tracked boxes of each update as CSV rows."""
     rows: list[np.ndarray] = []
     with open_recording(src) as rec:
-        tracker = tracker_class(rec.width, rec.height, params)
+        tracker = make_tracker(rec.width, rec.height, params)
         step = tracker.params.update_us
         next_us: int | None = None
         n_events = 0

@@ -178,6 +178,8 @@ class MultiObjectTracker:
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
         inter = [[_overlap(a, b) for b in dets] for a in pred]
+        ious = [[o / max(a[2] * a[3] + b[2] * b[3] - o, 1e-6) for b, o in zip(dets, row, strict=True)]
+                for a, row in zip(pred, inter, strict=True)]
         live = [tr.state != LOST for tr in self.tracks]
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
         # tracks are one target seen in pieces before: merge those, place the rest
@@ -185,8 +187,7 @@ class MultiObjectTracker:
         whole: dict[int, int] = {}
         # a track with a detection of its own (a small target seen inside a big one's) shares no other, unless
         # the two are about the same (two tracks on one target, each with a box of it)
-        own = [next((b for di, b in enumerate(dets) if inter[ti][di] >= 0.5 * (_area(a) + _area(b) - inter[ti][di])),
-                    None) for ti, a in enumerate(pred)]
+        own = [next((b for b, o in zip(dets, row, strict=True) if o >= 0.5), None) for row in ious]
         for di, det in enumerate(dets):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
                       and (own[ti] is None or _iou(own[ti], det) >= 0.5)]
@@ -198,7 +199,7 @@ class MultiObjectTracker:
                     whole[members[0]] = di
         in_shared = {ti for members in shared.values() for ti in members}
         live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]
-        assigned = self._match(pred, dets, inter, in_shared | set(whole), set(shared) | set(whole.values()))
+        assigned = self._match(pred, dets, ious, in_shared | set(whole), set(shared) | set(whole.values()))
         used = set(assigned.values()) | set(shared) | set(whole.values())
         for ti, di in whole.items():
             self._place(self.tracks[ti], dets[di], t_us)
@@ -277,7 +278,7 @@ class MultiObjectTracker:
                 keep.append(i)
         return keep
 
-    def _match(self, pred: list[Box], dets: list[Box], inter: list[list[float]], exclude_tracks: set[int],
+    def _match(self, pred: list[Box], dets: list[Box], ious: list[list[float]], exclude_tracks: set[int],
                exclude_dets: set[int]) -> dict[int, int]:
         """One-to-one assignment, greedy by overlap, then by centre distance within the gate; lost
         tracks (but those that left the image) also take detections of their size near their prediction."""
@@ -292,7 +293,7 @@ class MultiObjectTracker:
             for di, b in enumerate(dets):
                 if di in exclude_dets:
                     continue
-                overlap = inter[ti][di] / max(a[2] * a[3] + b[2] * b[3] - inter[ti][di], 1e-6)
+                overlap = ious[ti][di]
                 if overlap >= p.min_iou:
                     cost = -overlap
                 else:
