@@ -33,8 +33,10 @@ def test_dashboard_shows_live_services_events_and_boxes(rig: str, tmp_path) -> N
                             60, "all three services in the dashboard table", period_s=1.0)
             assert f"ETAM · {rig}" in text and "→ tracks" in text and "→ events" in text
             assert browser.evaluate("document.querySelectorAll('canvas').length") >= 1  # the 3D scene
-            assert browser.evaluate("Array.from(document.images).some(i => i.src.startsWith('blob:') "
-                                    "&& i.naturalWidth >= 346)")  # the live event image
+            # the live event image: on a clean clone its first frame may come long after the table (kernels compile)
+            wait_for(lambda: browser.evaluate("Array.from(document.images).some(i => i.src.startsWith('blob:') "
+                                              "&& i.naturalWidth >= 346)"),
+                     60, "the live event image", period_s=0.5)
             time.sleep(3)
             png = browser.screenshot()
         (tmp_path / "dashboard.png").write_bytes(png)
