@@ -361,6 +361,19 @@ def test_a_target_that_stays_hidden_behind_a_nearer_one_is_lost_after_the_hold()
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]  # the small one lost, not carried along
 
 
+def test_a_new_target_beside_an_old_one_is_not_folded_into_it_when_their_blobs_join() -> None:
+    """A target just confirmed beside a tracked one (its box apart from the other's) is a second target,
+    not a piece of the first: when the two become one blob it keeps its id, young as it is."""
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [100, 100, 30, 30], [2, 0, 0, 0], 20)  # one target, tracked for 200 ms
+    for i in range(20, 50):  # a second one comes in 8 px below it; from i = 26 the two are one blob
+        a, b = [100 + 2 * i, 100, 30, 30], [100 + 2 * i, 138, 30, 30]
+        boxes = [a, b] if not 26 <= i < 40 else [[a[0], 100, 30, 68]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, TRACKED)]
+    assert tracks[1].box[1] == pytest.approx(138, abs=3)
+
+
 def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:
     """A small target crossing in front of a big one has a detection of its own inside the big one's:
     it follows that detection (here it turns back) rather than being placed as one of a shared blob."""

@@ -70,7 +70,7 @@ class AssociationParams:
     # would fold two targets travelling side by side into one
     same_velocity_px_s: float = 15.0
     alike_iou: float = 0.05  # ... and overlapping by this IoU: two still targets side by side move alike too
-    young_us: int = 300_000  # a track younger than this merges into an older one it shares with
+    young_us: int = 300_000  # a track younger than this merges into an older one it shares with and overlaps
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
@@ -259,9 +259,10 @@ class MultiObjectTracker:
         return list(self.tracks)
 
     def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
-        """Of tracks sharing one detection, fold each young one, or one moving with it and overlapping
-        it, into the oldest of them (marked `_GONE`, removed after the update); the members left. Two
-        still targets side by side move alike (not at all) but barely overlap: they stay two."""
+        """Of tracks sharing one detection, fold each tentative one, each young one overlapping it, or
+        one moving with it and overlapping it, into the oldest of them (marked `_GONE`, removed after
+        the update); the members left. Two still targets side by side move alike (not at all) but
+        barely overlap: they stay two."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -270,7 +271,9 @@ class MultiObjectTracker:
             for k in keep:
                 older = self.tracks[k]
                 alike = math.dist(tr.vel, older.vel) <= p.same_velocity_px_s and _iou(pred[i], pred[k]) >= p.alike_iou
-                if tr.state == TENTATIVE or t_us - tr.first_seen_us < p.young_us or alike:
+                # a confirmed young track apart from the older one is a second target beside it, not a piece
+                young = t_us - tr.first_seen_us < p.young_us and _overlap(pred[i], pred[k]) > 0
+                if tr.state == TENTATIVE or young or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
                     break
