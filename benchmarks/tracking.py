@@ -80,13 +80,15 @@ class TruthBoxes(ObjectTracker):
 
     def __init__(self, width: int, height: int, truth: np.ndarray, merged: bool) -> None:
         super().__init__(width, height, method_params(DEFAULT_METHOD))
-        self.truth, self.times, self.merged = truth, np.unique(truth[:, 0]), merged
+        rows = truth[np.argsort(truth[:, 0], kind="stable")]
+        self.times, starts = np.unique(rows[:, 0], return_index=True)
+        self.truth_boxes = [b[:, 2:6].astype(np.float32) for b in np.split(rows, starts[1:])] if len(rows) else []
+        self.merged = merged
 
     def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
         if not len(self.times):
             return np.zeros((0, 4), np.float32)
-        k = max(int(np.searchsorted(self.times, t_us, side="right")) - 1, 0)
-        boxes = self.truth[self.truth[:, 0] == self.times[k], 2:6].astype(np.float32)
+        boxes = self.truth_boxes[max(int(np.searchsorted(self.times, t_us, side="right")) - 1, 0)]
         return _merge_overlapping(boxes) if self.merged else boxes
 
 

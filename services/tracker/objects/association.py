@@ -136,8 +136,9 @@ def _cut(a: Box, b: Box) -> Box:
     return x0, y0, min(a[0] + a[2], b[0] + b[2]) - x0, min(a[1] + a[3], b[1] + b[3]) - y0
 
 
-def _iou(a: Box, b: Box) -> float:
-    inter = _overlap(a, b)
+def _iou(a: Box, b: Box, inter: float | None = None) -> float:
+    """Their intersection over union, from their overlap where it is known already."""
+    inter = _overlap(a, b) if inter is None else inter
     return inter / max(a[2] * a[3] + b[2] * b[3] - inter, 1e-6)
 
 
@@ -178,8 +179,7 @@ class MultiObjectTracker:
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
         inter = [[_overlap(a, b) for b in dets] for a in pred]
-        ious = [[o / max(a[2] * a[3] + b[2] * b[3] - o, 1e-6) for b, o in zip(dets, row, strict=True)]
-                for a, row in zip(pred, inter, strict=True)]
+        ious = [[_iou(a, b, o) for b, o in zip(dets, row, strict=True)] for a, row in zip(pred, inter, strict=True)]
         live = [tr.state != LOST for tr in self.tracks]
         # a detection holding most of two or more live tracks is shared (crossing targets) or the
         # tracks are one target seen in pieces before: merge those, place the rest
@@ -270,9 +270,11 @@ class MultiObjectTracker:
             tr = self.tracks[i]
             for k in keep:
                 older = self.tracks[k]
-                alike = math.dist(tr.vel, older.vel) <= p.same_velocity_px_s and _iou(pred[i], pred[k]) >= p.alike_iou
+                inter = _overlap(pred[i], pred[k])
+                alike = (math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
+                         and _iou(pred[i], pred[k], inter) >= p.alike_iou)
                 # a confirmed young track apart from the older one is a second target beside it, not a piece
-                young = t_us - tr.first_seen_us < p.young_us and _overlap(pred[i], pred[k]) > 0
+                young = t_us - tr.first_seen_us < p.young_us and inter > 0
                 if tr.state == TENTATIVE or young or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
