@@ -225,13 +225,14 @@ class MultiObjectTracker:
             self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
         hidden: set[int] = set()
         for members in shared.values():
-            hidden |= self._covered(members, pred)
+            boxes = [pred[ti] for ti in members]
+            alone = [_alone(box, boxes[:k] + boxes[k + 1:]) for k, box in enumerate(boxes)]
+            hidden |= self._covered(members, boxes, [share for _, share in alone])
             if fresh is not None:  # one that stopped beside a moving one is held, not laid onto its events
-                boxes = [pred[ti] for ti in members]
                 new_in = fresh(np.asarray(boxes, np.float32)).tolist()
                 moving = []
                 for k, ti in enumerate(members):
-                    if self._stopped_beside(self.tracks[ti], k, boxes, new_in, fresh):
+                    if self._stopped_beside(self.tracks[ti], k, boxes, new_in, alone[k], fresh):
                         self._hold(self.tracks[ti], t_us)
                     else:
                         moving.append(ti)
@@ -322,12 +323,13 @@ class MultiObjectTracker:
         its place in a shared blob)."""
         tr.box, tr.t_us, tr.last_seen_us = box, t_us, t_us
 
-    def _covered(self, members: list[int], pred: list[Box]) -> set[int]:
-        """Of tracks sharing a detection, those whose box the others' boxes mostly cover (all but the
-        biggest): targets gone behind a nearer one. They are still placed, but count as unseen, so one
-        that stays hidden is lost after `hold_us` instead of riding on the nearer one's events."""
-        return {ti for ti in sorted(members, key=lambda i: _area(pred[i]))[:-1]
-                if _alone(pred[ti], [pred[o] for o in members if o != ti])[1] < self.params.hidden_share}
+    def _covered(self, members: list[int], boxes: list[Box], shares: list[float]) -> set[int]:
+        """Of tracks sharing a detection (their predicted boxes, and the share of each the others
+        leave), those whose box the others' boxes mostly cover (all but the biggest): targets gone
+        behind a nearer one. They are still placed, but count as unseen, so one that stays hidden is
+        lost after `hold_us` instead of riding on the nearer one's events."""
+        by_area = sorted(range(len(members)), key=lambda k: _area(boxes[k]))
+        return {members[k] for k in by_area[:-1] if shares[k] < self.params.hidden_share}
 
     def _stopped(self, tr: Track, new_events: float, share: float = 1.0) -> bool:
         """Whether its detection (or the `share` of its box no other track covers) has far fewer new
@@ -345,22 +347,22 @@ class MultiObjectTracker:
         g = self.params.rate_gain
         tr.rate = new_events if tr.rate == 0 else (1 - g) * tr.rate + g * new_events
 
-    def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float], fresh: Counts) -> bool:
-        """`_stopped` for the `k`th of the tracks sharing a detection (their boxes and new events): the
-        target stopped beside a moving one if the part of its box no other covers (when big enough
-        to tell) has far fewer new events than usual and than the busiest other, per pixel. The
-        others' events would hide its stop from a count over the detection, and the layout would
-        lay it onto them."""
+    def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float],
+                        alone: tuple[list[Box], float], fresh: Counts) -> bool:
+        """`_stopped` for the `k`th of the tracks sharing a detection (their boxes, new events, and the
+        parts of its box the others cover with the share they leave): the target stopped beside a
+        moving one if the part of its box no other covers (when big enough to tell) has far fewer new
+        events than usual and than the busiest other, per pixel. The others' events would hide its
+        stop from a count over the detection, and the layout would lay it onto them."""
         p = self.params
         box = boxes[k]
-        others = [(b, n) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k]
-        cuts, share = _alone(box, [b for b, _ in others])
+        cuts, share = alone
         if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
             # its box has more new events than it had itself while it moved
             return tr.state == TRACKED and tr.vel == (0.0, 0.0) and new_in[k] < tr.rate
-        alone = max(new_in[k] - float(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).sum()), 0.0)
-        busiest = max(n / _area(b) for b, n in others)
-        return alone < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, alone, share)
+        own = max(new_in[k] - float(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).sum()), 0.0)
+        busiest = max(n / _area(b) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k)
+        return own < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, own, share)
 
     def _correct(self, tr: Track, box: Box, t_us: int) -> None:
         """A measured box: velocity from the centre's move, size smoothed."""

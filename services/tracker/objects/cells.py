@@ -45,57 +45,68 @@ def _reflect(i, n):  # noqa: ANN001, ANN202 - numba kernel
 
 
 @numba.njit(cache=True, nogil=True)
+def _reflected(n, r):  # noqa: ANN001, ANN202 - numba kernel
+    """For each index -r..n+r-1 of an axis padded by `r`, the index it reads (`_reflect`)."""
+    out = np.empty(n + 2 * r, np.int64)
+    for i in range(n + 2 * r):
+        out[i] = _reflect(i - r, n)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def box_sums(counts, window):  # noqa: ANN001, ANN201 - numba kernel
     """The counts summed over a `window` x `window` square around each cell (borders reflected);
-    running sums, along x and then along y."""
+    running sums, along x and then along y, reading through tables of reflected indices."""
     rows, cols = counts.shape
     r = window // 2
-    across = np.zeros((rows, cols), np.int32)
+    at_x, at_y = _reflected(cols, r), _reflected(rows, r)
+    across = np.empty((rows, cols), np.int32)
     for y in range(rows):
         src = counts[y]
         total = 0
-        for i in range(-r, r):
-            total += src[_reflect(i, cols)]
+        for i in range(2 * r):
+            total += src[at_x[i]]
         for x in range(cols):
-            total += src[_reflect(x + r, cols)]
+            total += src[at_x[x + 2 * r]]
             across[y, x] = total
-            total -= src[_reflect(x - r, cols)]
-    out = np.zeros((rows, cols), np.int32)
+            total -= src[at_x[x]]
+    out = np.empty((rows, cols), np.int32)
     total_row = np.zeros(cols, np.int32)
-    for i in range(-r, r):
-        total_row += across[_reflect(i, rows)]
+    for i in range(2 * r):
+        total_row += across[at_y[i]]
     for y in range(rows):
-        total_row += across[_reflect(y + r, rows)]
+        total_row += across[at_y[y + 2 * r]]
         out[y] = total_row
-        total_row -= across[_reflect(y - r, rows)]
+        total_row -= across[at_y[y]]
     return out
 
 
 @numba.njit(cache=True, nogil=True)
 def close(mask, kernel):  # noqa: ANN001, ANN201 - numba kernel
     """Morphological closing (dilation, outside empty, then erosion, outside full) of a sparse 0/1
-    mask by a symmetric 0/1 kernel: both passes only work at the set cells."""
+    mask by a symmetric 0/1 kernel: the dilation only works at the set cells, and both passes on a
+    copy padded by the kernel's reach, so no step tests a border."""
     rows, cols = mask.shape
+    ry, rx = kernel.shape[0] // 2, kernel.shape[1] // 2
     dys, dxs = np.nonzero(kernel)
-    dys -= kernel.shape[0] // 2
-    dxs -= kernel.shape[1] // 2
-    grown = np.zeros_like(mask)
+    grown = np.zeros((rows + 2 * ry, cols + 2 * rx), np.uint8)
     for y in range(rows):
         for x in range(cols):
             if mask[y, x]:
                 for k in range(len(dys)):
-                    yy, xx = y + dys[k], x + dxs[k]
-                    if 0 <= yy < rows and 0 <= xx < cols:
-                        grown[yy, xx] = 1
+                    grown[y + dys[k], x + dxs[k]] = 1
+    grown[:ry] = 1  # outside counts as full for the erosion
+    grown[rows + ry:] = 1
+    grown[:, :rx] = 1
+    grown[:, cols + rx:] = 1
     out = np.zeros_like(mask)
     for y in range(rows):
         for x in range(cols):
-            if not grown[y, x]:
+            if not grown[y + ry, x + rx]:
                 continue
             keep = 1
             for k in range(len(dys)):
-                yy, xx = y + dys[k], x + dxs[k]
-                if 0 <= yy < rows and 0 <= xx < cols and not grown[yy, xx]:
+                if not grown[y + dys[k], x + dxs[k]]:
                     keep = 0
                     break
             out[y, x] = keep

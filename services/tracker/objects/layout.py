@@ -15,7 +15,6 @@ pull towards the size the track last measured on its own, which keeps right size
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba
@@ -37,29 +36,43 @@ def fit_layout(image: np.ndarray, boxes: np.ndarray, params: LayoutParams,
                sizes: np.ndarray | None = None) -> np.ndarray:
     """The boxes (K x 4: x, y, w, h) moved onto the recent pixels of a decayed image, their sizes
     pulled towards `sizes` (K x 2: w, h; the boxes' own if not given)."""
-    rows = np.asarray(boxes, np.float32).reshape(-1, 4).tolist()
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    own = boxes[:, 2:] if sizes is None else np.asarray(sizes, np.float64).reshape(-1, 2)
+    return _placed(image, boxes, own, np.float32(params.recent), np.float32(params.density), params.reach_px,
+                   params.pull, params.rounds, params.resize_px, params.size_pull)
+
+
+@numba.njit(cache=True, nogil=True)
+def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, size_pull):  # noqa: ANN001, ANN202 - numba kernel
+    """`fit_layout` on the region the boxes can reach: boxes start at their rounded corners and
+    sizes; one left where it started keeps its sub-pixel prediction."""
     h_img, w_img = image.shape
-    margin = params.reach_px * params.rounds
-    x0 = max(math.floor(min(r[0] for r in rows)) - margin, 0)
-    y0 = max(math.floor(min(r[1] for r in rows)) - margin, 0)
-    x1 = min(math.ceil(max(r[0] + r[2] for r in rows)) + margin, w_img)
-    y1 = min(math.ceil(max(r[1] + r[3] for r in rows)) + margin, h_img)
+    margin = reach * rounds
+    x0 = max(int(np.floor((boxes[:, 0]).min())) - margin, 0)
+    y0 = max(int(np.floor((boxes[:, 1]).min())) - margin, 0)
+    x1 = min(int(np.ceil((boxes[:, 0] + boxes[:, 2]).max())) + margin, w_img)
+    y1 = min(int(np.ceil((boxes[:, 1] + boxes[:, 3]).max())) + margin, h_img)
+    out = boxes.astype(np.float32)
     if x1 <= x0 or y1 <= y0:
-        return np.asarray(rows, np.float32).reshape(-1, 4)
-    pred = np.array([(r[0] - x0, r[1] - y0) for r in rows])
-    start = [(round(r[0]) - x0, round(r[1]) - y0) for r in rows]
-    pos = np.array(start, np.int64)
-    was_size = [(max(round(r[2]), 1), max(round(r[3]), 1)) for r in rows]
-    size = np.array(was_size, np.int64)
-    own = np.maximum(np.asarray(size if sizes is None else sizes, np.float64).reshape(-1, 2), 1.0)
-    _fit(image[y0:y1, x0:x1], np.float32(params.recent), np.float32(params.density), pos, size, pred,
-         params.reach_px, params.pull, params.rounds, own, params.resize_px, params.size_pull)
-    for r, (px, py), (sw, sh), was, was_wh in zip(rows, pos.tolist(), size.tolist(), start, was_size, strict=True):
-        if (px, py) != was or (sw, sh) != was_wh:  # boxes left as they were keep their sub-pixel prediction
-            r[0], r[1] = px + x0, py + y0
-        if (sw, sh) != was_wh:
-            r[2], r[3] = sw, sh
-    return np.asarray(rows, np.float32)
+        return out
+    k_n = len(boxes)
+    pred = np.empty((k_n, 2))
+    pos = np.empty((k_n, 2), np.int64)
+    size = np.empty((k_n, 2), np.int64)
+    for k in range(k_n):
+        pred[k, 0], pred[k, 1] = boxes[k, 0] - x0, boxes[k, 1] - y0
+        pos[k, 0], pos[k, 1] = round(boxes[k, 0]) - x0, round(boxes[k, 1]) - y0
+        size[k, 0], size[k, 1] = max(round(boxes[k, 2]), 1), max(round(boxes[k, 3]), 1)
+    start, was_size = pos.copy(), size.copy()
+    _fit(image[y0:y1, x0:x1], recent, density, pos, size, pred, reach, pull, rounds, np.maximum(own, 1.0),
+         resize, size_pull)
+    for k in range(k_n):
+        resized = size[k, 0] != was_size[k, 0] or size[k, 1] != was_size[k, 1]
+        if resized or pos[k, 0] != start[k, 0] or pos[k, 1] != start[k, 1]:
+            out[k, 0], out[k, 1] = pos[k, 0] + x0, pos[k, 1] + y0
+        if resized:
+            out[k, 2], out[k, 3] = size[k, 0], size[k, 1]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
