@@ -48,8 +48,8 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
     sizes; one left where it started keeps its sub-pixel prediction."""
     h_img, w_img = image.shape
     margin = reach * rounds
-    x0 = max(int(np.floor((boxes[:, 0]).min())) - margin, 0)
-    y0 = max(int(np.floor((boxes[:, 1]).min())) - margin, 0)
+    x0 = max(int(np.floor(boxes[:, 0].min())) - margin, 0)
+    y0 = max(int(np.floor(boxes[:, 1].min())) - margin, 0)
     x1 = min(int(np.ceil((boxes[:, 0] + boxes[:, 2]).max())) + margin, w_img)
     y1 = min(int(np.ceil((boxes[:, 1] + boxes[:, 3]).max())) + margin, h_img)
     out = boxes.astype(np.float32)
