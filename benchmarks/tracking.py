@@ -30,6 +30,7 @@ from services.camera.formats import open_recording
 from services.camera.offline import simulate
 from services.camera.simulator import SimParams
 from services.tracker.offline import CSV_HEADER, eval_tracking, track
+from services.tracker.evaluation import split_frames
 from services.tracker.objects.association import intersection
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params
 
@@ -80,9 +81,8 @@ class TruthBoxes(ObjectTracker):
 
     def __init__(self, width: int, height: int, truth: np.ndarray, merged: bool) -> None:
         super().__init__(width, height, method_params(DEFAULT_METHOD))
-        rows = truth[np.argsort(truth[:, 0], kind="stable")]
-        self.times, starts = np.unique(rows[:, 0], return_index=True)
-        self.truth_boxes = [b[:, 2:6].astype(np.float32) for b in np.split(rows, starts[1:])] if len(rows) else []
+        self.times, frames = split_frames(truth)
+        self.truth_boxes = [rows[:, 2:6].astype(np.float32) for rows in frames]
         self.merged = merged
 
     def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:

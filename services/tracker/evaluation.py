@@ -44,7 +44,7 @@ class TrackingScores:
         return asdict(self)
 
 
-def _frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def split_frames(rows: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     """Frame times and the rows of each, from rows sorted or not by time."""
     times = np.unique(rows[:, 0])
     return times, _rows_at(rows, times)
@@ -95,7 +95,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     pred, truth = np.asarray(pred, np.float64).reshape(-1, 6), np.asarray(truth, np.float64).reshape(-1, 6)
     ignore = np.zeros((0, 6)) if ignore is None else np.asarray(ignore, np.float64).reshape(-1, 6)
     t_truth, truth_frames, ignore_frames = _truth_frames(truth, ignore)
-    t_pred, pred_frames = _frames(pred)
+    t_pred, pred_frames = split_frames(pred)
     ious: list[float] = []
     centre_err: list[float] = []
     false_boxes = 0

@@ -187,10 +187,10 @@ class MultiObjectTracker:
         whole: dict[int, int] = {}
         # a track with a detection of its own (a small target seen inside a big one's) shares no other, unless
         # the two are about the same (two tracks on one target, each with a box of it)
-        own = [next((b for b, o in zip(dets, row, strict=True) if o >= 0.5), None) for row in ious]
+        own_det = [next((b for b, o in zip(dets, row, strict=True) if o >= 0.5), None) for row in ious]
         for di, det in enumerate(dets):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
-                      and (own[ti] is None or _iou(own[ti], det) >= 0.5)]
+                      and (own_det[ti] is None or _iou(own_det[ti], det) >= 0.5)]
             if len(inside) >= 2:
                 members = self._merge_alike(t_us, inside, pred)
                 if len(members) >= 2:
@@ -242,10 +242,8 @@ class MultiObjectTracker:
             placed = layout(boxes_in, own) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
                 tr = self.tracks[ti]
-                if ti in hidden:  # placed, but not seen: lost once hidden for `hold_us`
-                    tr.box, tr.t_us = (box[0], box[1], box[2], box[3]), t_us
-                    if t_us - tr.last_seen_us > p.hold_us:
-                        tr.state = LOST
+                if ti in hidden:  # placed, but not seen
+                    self._coast(tr, (box[0], box[1], box[2], box[3]), t_us)
                 else:
                     self._place(tr, (box[0], box[1], box[2], box[3]), t_us)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
@@ -414,9 +412,13 @@ class MultiObjectTracker:
         if not hidden:
             tr.vel = (0.5 * tr.vel[0], 0.5 * tr.vel[1])  # a target without events has stopped: hold it
             pred = tr.predict(t_us)
-        tr.box, tr.t_us = pred, t_us
+        self._coast(tr, pred, t_us)
         tr.score *= 0.995
-        if unseen_us > p.hold_us:
+
+    def _coast(self, tr: Track, box: Box, t_us: int) -> None:
+        """A confirmed track moved to `box` without a sighting: lost once unseen for `hold_us`."""
+        tr.box, tr.t_us = box, t_us
+        if t_us - tr.last_seen_us > self.params.hold_us:
             tr.state = LOST
 
     def _sides(self, box: Box) -> int:
