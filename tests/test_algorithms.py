@@ -400,6 +400,20 @@ def test_a_target_gone_behind_two_nearer_ones_coasts_at_its_velocity() -> None:
     assert [t.ident for t in tracks if t.state != LOST] == [1, 2, 3]
 
 
+def test_a_target_going_behind_a_still_one_keeps_its_size() -> None:
+    """Its detection shrinks to the part the nearer target leaves in view; the track keeps its width,
+    reaching behind the nearer one, and moves with the edge still seen."""
+    mot = MultiObjectTracker(width=346, height=260)
+    still = [100, 80, 60, 80]
+    for i in range(40):  # the far target goes left at 2 px per update; x < 160 is behind the still one
+        x = 220 - 2 * i
+        seen = [max(x, 160), 100, x + 40 - max(x, 160), 30]
+        tracks = mot.update(i * 10_000, np.array([still, seen], np.float32))
+    far = next(t for t in tracks if t.ident == 2)
+    assert far.box[2] == pytest.approx(40, abs=2)  # its width, not the 22 px still in view
+    assert far.box[0] == pytest.approx(142, abs=3) and far.vel[0] == pytest.approx(-200, rel=0.2)
+
+
 def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(80):  # a target catches up with a still one and slows down against it: one blob from i = 45

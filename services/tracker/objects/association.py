@@ -5,6 +5,7 @@ knew it was lost. Here:
 - a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone;
+  a target going behind another keeps its usual size where its detection is cut by the other's box;
   a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
   blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
   `hold_us`; one that leaves the image is lost, and a target confirmed at that border with its size (on the axis
@@ -156,6 +157,24 @@ def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
     return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
 
 
+def _behind(box: Box, sizes: tuple[float, float], others: list[Box], least: float = 0.9) -> Box:
+    """A detection narrower (shorter) than its track's usual `sizes`, cut on one side by another track's
+    box (a nearer target hides that side), given back that width (height) on the hidden side."""
+    out = list(box)
+    for axis in (0, 1):
+        size, full = box[2 + axis], sizes[axis]
+        if size >= least * full:
+            continue
+        lo, hi = box[axis], box[axis] + size
+        across = [o for o in others if o[1 - axis] < box[1 - axis] + box[3 - axis]
+                  and o[1 - axis] + o[3 - axis] > box[1 - axis]]  # overlapping it on the other axis
+        cut_lo = any(o[axis] < lo <= o[axis] + o[2 + axis] + 1 for o in across)
+        cut_hi = any(o[axis] - 1 <= hi < o[axis] + o[2 + axis] for o in across)
+        if cut_lo != cut_hi:
+            out[axis], out[2 + axis] = (hi - full if cut_lo else lo), full
+    return out[0], out[1], out[2], out[3]
+
+
 def _union(boxes: list[Box]) -> Box:
     x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
     return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
@@ -222,7 +241,13 @@ class MultiObjectTracker:
                     self._hold(self.tracks[ti], t_us)
                     continue
                 self._learn_rate(self.tracks[ti], new_events)
-            self._correct(self.tracks[ti], _union([dets[di] for di in members]), t_us)
+            box = _union([dets[di] for di in members])
+            tr = self.tracks[ti]
+            if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
+                usual = tr.full_size(0) or tr.box[2], tr.full_size(1) or tr.box[3]
+                box = _behind(box, usual, [a for k, a in enumerate(pred) if k != ti and live[k]
+                                            and self.tracks[k].state == TRACKED])
+            self._correct(tr, box, t_us)
         hidden: set[int] = set()
         for members in shared.values():
             boxes = [pred[ti] for ti in members]
