@@ -361,6 +361,26 @@ def test_a_target_that_stays_hidden_behind_a_nearer_one_is_lost_after_the_hold()
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]  # the small one lost, not carried along
 
 
+def test_a_stopped_target_in_a_moving_ones_blob_is_lost_after_the_hold() -> None:
+    """A target stops beside a moving one whose blob keeps covering its box: held there, but not
+    seen, so it is lost after `hold_us` like any target gone still, not kept for as long as the blob
+    lasts (a track left where no target is would keep taking the blobs that pass)."""
+    from services.tracker.objects.association import intersection
+
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(320):  # b comes left and stops at i = 20; a sways to and fro beside it, one blob with it
+        a, b = [150 + 20 * np.sin(i / 8), 100, 30, 30], [240 - 2 * min(i, 20), 100, 30, 30]
+        boxes = [a, b] if i < 23 else [[a[0], 100, b[0] + 30 - a[0], 30]]
+        moving = np.float32([a, b] if i < 20 else [a])
+        img = _blob_image([a, b] if i < 23 else [a], seed=i)
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
+                            fresh=lambda c, moving=moving: intersection(c, moving).sum(axis=1),
+                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
+        if i == 200:  # still for 1.8 s: held where it stopped
+            assert next(t for t in tracks if t.ident == 2).box[0] == pytest.approx(200, abs=3)
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]
+
+
 def test_a_new_target_beside_an_old_one_is_not_folded_into_it_when_their_blobs_join() -> None:
     """A target just confirmed beside a tracked one (its box apart from the other's) is a second target,
     not a piece of the first: when the two become one blob it keeps its id, young as it is."""

@@ -258,7 +258,7 @@ class MultiObjectTracker:
                 moving = []
                 for k, ti in enumerate(members):
                     if self._stopped_beside(self.tracks[ti], k, boxes, new_in, alone[k], fresh):
-                        self._hold(self.tracks[ti], t_us)
+                        self._hold(self.tracks[ti], t_us, seen=False)
                     else:
                         moving.append(ti)
                 members = moving
@@ -359,11 +359,15 @@ class MultiObjectTracker:
         events than usual: the target stopped and what is seen there is its fading image."""
         return tr.state == TRACKED and new_events < self.params.stop_ratio * share * tr.rate
 
-    def _hold(self, tr: Track, t_us: int) -> None:
-        """The track held where it is: a stopped target."""
+    def _hold(self, tr: Track, t_us: int, seen: bool = True) -> None:
+        """The track held where it is: a stopped target; `seen` if by its own fading image."""
         tr.rate *= self.params.rate_decay
         tr.vel = (0.0, 0.0)
-        tr.t_us = tr.last_seen_us = t_us
+        tr.t_us = t_us
+        if seen:
+            tr.last_seen_us = t_us
+        elif t_us - tr.last_seen_us > self.params.hold_us:
+            tr.state = LOST
 
     def _learn_rate(self, tr: Track, new_events: float) -> None:
         """The track's usual count of new events learns from its detection's, while it moves."""
