@@ -105,7 +105,9 @@ def test_association_confirms_then_holds_a_stopped_target() -> None:
     assert tracks[0].state == TRACKED and abs(tracks[0].box[0] - 108) < 6  # held, not drifting away
     tracks = mot.update(2_200_000, np.zeros((0, 4), np.float32))
     assert tracks[0].state == LOST  # held no longer than hold_us
-    tracks = mot.update(2_210_000, np.array([[115, 100, 20, 20]], np.float32))  # back near where it was
+    for t in range(2_210_000, 3_500_000, 10_000):  # lost for a while, not forgotten at once
+        tracks = mot.update(t, np.zeros((0, 4), np.float32))
+    tracks = mot.update(3_500_000, np.array([[115, 100, 20, 20]], np.float32))  # moves again near where it was
     assert tracks[0].ident == 1 and tracks[0].hits == 6
 
 

@@ -58,7 +58,7 @@ class AssociationParams:
     confirm_hits: int = 4
     lost_after_us: int = 50_000  # a tentative track unseen this long is dropped
     hold_us: int = 2_000_000  # a confirmed track unseen this long is lost
-    forget_after_us: int = 2_000_000  # a lost track unseen this long is forgotten
+    forget_after_us: int = 2_000_000  # a track lost this long is forgotten
     reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
     # of two lost tracks that fit, the better one's size error is under this share of the other's
     reid_margin: float = 0.5
@@ -430,12 +430,12 @@ class MultiObjectTracker:
             if unseen_us > p.lost_after_us:
                 tr.state = _GONE
             return
-        if tr.state == LOST:
-            if unseen_us > p.forget_after_us:
+        if tr.state == LOST:  # since it was lost
+            if t_us - tr.t_us > p.forget_after_us:
                 tr.state = _GONE
             return
         if self._sides(tr.box):
-            tr.state, tr.vel = LOST, (0.0, 0.0)  # waits where it left, to be found again if it comes back
+            tr.state, tr.vel, tr.t_us = LOST, (0.0, 0.0), t_us  # waits where it left, to be found if it comes back
             return
         hidden = _alone(pred, observed)[1] <= 0.5
         if not hidden:
