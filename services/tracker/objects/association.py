@@ -106,6 +106,10 @@ class Track:
         sizes = self.heights if axis else self.widths
         return statistics.median(sizes) if sizes else None
 
+    def usual_size(self, axis: int) -> float:
+        """Its usual width (axis 0) or height (1): in full view if ever seen so, else its box's."""
+        return self.full_size(axis) or self.box[2 + axis]
+
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
         x, y, w, h = self.box
@@ -157,20 +161,17 @@ def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
     return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
 
 
-def _behind(box: Box, sizes: tuple[float, float], others: list[Box], least: float = 0.9) -> Box:
-    """A detection narrower (shorter) than its track's usual `sizes`, cut on one side by another track's
-    box (a nearer target hides that side), given back that width (height) on the hidden side."""
+def _behind(box: Box, usual: Callable[[int], float], others: list[Box], least: float = 0.9) -> Box:
+    """A detection cut on one side by another track's box (a nearer target hides that side) and
+    narrower (shorter) than its track's `usual` width (height), given that size back on the hidden side."""
     out = list(box)
     for axis in (0, 1):
-        size, full = box[2 + axis], sizes[axis]
-        if size >= least * full:
-            continue
-        lo, hi = box[axis], box[axis] + size
+        lo, hi = box[axis], box[axis] + box[2 + axis]
         across = [o for o in others if o[1 - axis] < box[1 - axis] + box[3 - axis]
                   and o[1 - axis] + o[3 - axis] > box[1 - axis]]  # overlapping it on the other axis
         cut_lo = any(o[axis] < lo <= o[axis] + o[2 + axis] + 1 for o in across)
         cut_hi = any(o[axis] - 1 <= hi < o[axis] + o[2 + axis] for o in across)
-        if cut_lo != cut_hi:
+        if cut_lo != cut_hi and box[2 + axis] < least * (full := usual(axis)):
             out[axis], out[2 + axis] = (hi - full if cut_lo else lo), full
     return out[0], out[1], out[2], out[3]
 
@@ -224,6 +225,7 @@ class MultiObjectTracker:
             self._place(self.tracks[ti], dets[di], t_us)
         # fragments: small detections mostly inside a track's prediction join its measurement
         pieces: dict[int, list[int]] = {ti: [di] for ti, di in assigned.items()}
+        confirmed = [(ti, a) for ti, a in enumerate(pred) if live[ti] and self.tracks[ti].state == TRACKED]
         for di, det in enumerate(dets):
             if di in used or not pred:
                 continue
@@ -244,9 +246,7 @@ class MultiObjectTracker:
             box = _union([dets[di] for di in members])
             tr = self.tracks[ti]
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
-                usual = tr.full_size(0) or tr.box[2], tr.full_size(1) or tr.box[3]
-                box = _behind(box, usual, [a for k, a in enumerate(pred) if k != ti and live[k]
-                                            and self.tracks[k].state == TRACKED])
+                box = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti])
             self._correct(tr, box, t_us)
         hidden: set[int] = set()
         for members in shared.values():
