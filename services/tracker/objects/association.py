@@ -363,11 +363,10 @@ class MultiObjectTracker:
         """The track held where it is: a stopped target; `seen` if by its own fading image."""
         tr.rate *= self.params.rate_decay
         tr.vel = (0.0, 0.0)
-        tr.t_us = t_us
         if seen:
-            tr.last_seen_us = t_us
-        elif t_us - tr.last_seen_us > self.params.hold_us:
-            tr.state = LOST
+            tr.t_us = tr.last_seen_us = t_us
+        else:
+            self._coast(tr, tr.box, t_us)
 
     def _learn_rate(self, tr: Track, new_events: float) -> None:
         """The track's usual count of new events learns from its detection's, while it moves."""
