@@ -31,7 +31,7 @@ from services.camera.offline import simulate
 from services.camera.simulator import SimParams
 from services.tracker.offline import CSV_HEADER, eval_tracking, track
 from services.tracker.evaluation import split_frames
-from services.tracker.objects.association import intersection
+from services.tracker.objects.association import intersection, union
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params
 
 FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute")
@@ -93,13 +93,10 @@ class TruthBoxes(ObjectTracker):
 
 
 def _merge_overlapping(boxes: np.ndarray) -> np.ndarray:
-    merged: list[np.ndarray] = []
-    for box in boxes:
-        while hit := [i for i, m in enumerate(merged) if intersection(box[None], m[None])[0, 0] > 0]:
-            other = merged.pop(hit[0])
-            x0, y0 = np.minimum(box[:2], other[:2])
-            x1, y1 = np.maximum(box[:2] + box[2:], other[:2] + other[2:])
-            box = np.float32([x0, y0, x1 - x0, y1 - y0])
+    merged: list[tuple[float, ...]] = []
+    for box in map(tuple, boxes.tolist()):
+        while hit := [i for i, m in enumerate(merged) if intersection(np.float32([box]), np.float32([m]))[0, 0] > 0]:
+            box = union([box, merged.pop(hit[0])])
         merged.append(box)
     return np.float32(merged).reshape(-1, 4)
 

@@ -119,8 +119,8 @@ class Track:
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pairwise intersection over union of boxes a (N x 4) and b (M x 4), x y w h."""
     inter = intersection(a, b)
-    union = a[:, 2:3] * a[:, 3:4] + b[:, 2] * b[:, 3] - inter
-    return inter / np.maximum(union, 1e-6)
+    joined = a[:, 2:3] * a[:, 3:4] + b[:, 2] * b[:, 3] - inter
+    return inter / np.maximum(joined, 1e-6)
 
 
 def intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -176,7 +176,8 @@ def _behind(box: Box, usual: Callable[[int], float], others: list[Box], least: f
     return out[0], out[1], out[2], out[3]
 
 
-def _union(boxes: list[Box]) -> Box:
+def union(boxes: list[Box]) -> Box:
+    """The smallest box holding all of `boxes`."""
     x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
     return x0, y0, max(b[0] + b[2] for b in boxes) - x0, max(b[1] + b[3] for b in boxes) - y0
 
@@ -237,14 +238,14 @@ class MultiObjectTracker:
                 used.add(di)
         new_in_dets = fresh(np.asarray(dets, np.float32)) if fresh is not None and dets else []
         for ti, members in pieces.items():
+            tr = self.tracks[ti]
             if fresh is not None:
                 new_events = float(sum(new_in_dets[di] for di in members))
-                if self._stopped(self.tracks[ti], new_events):
-                    self._hold(self.tracks[ti], t_us)
+                if self._stopped(tr, new_events):
+                    self._hold(tr, t_us)
                     continue
-                self._learn_rate(self.tracks[ti], new_events)
-            box = _union([dets[di] for di in members])
-            tr = self.tracks[ti]
+                self._learn_rate(tr, new_events)
+            box = union([dets[di] for di in members])
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
                 box = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti])
             self._correct(tr, box, t_us)
