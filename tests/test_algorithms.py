@@ -130,6 +130,28 @@ def test_association_holds_a_target_whose_detection_only_fades() -> None:
     assert tracks[0].box[0] == pytest.approx(138, abs=4) and tracks[0].vel[0] > 100
 
 
+def test_a_target_that_stops_at_the_border_in_full_view_is_held_and_one_that_leaves_is_not() -> None:
+    """A target that stops touching a border is still there; one that goes out shrinks to a sliver
+    (its events falling with it) and is lost, to be found again by its size if it comes back."""
+    none = np.zeros((0, 4), np.float32)
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(10):  # moving left, 1000 new events per update, until it touches the left border
+        mot.update(i * 10_000, np.array([[max(18 - 2 * i, 0), 100, 40, 40]], np.float32),
+                   fresh=lambda b: np.full(len(b), 1000.0))
+    for i in range(10, 13):  # stopped there: only its fading image, then nothing
+        mot.update(i * 10_000, np.array([[0, 100, 40, 40]], np.float32), fresh=lambda b: np.full(len(b), 5.0))
+    for t in range(130_000, 1_000_000, 10_000):
+        tracks = mot.update(t, none)
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)] and tracks[0].box[0] == pytest.approx(0, abs=1)
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(20):  # out through the left border: the box and its events shrink together
+        w = min(40, 80 - 4 * i)
+        mot.update(i * 10_000, np.array([[max(40 - 4 * i, 0), 100, w, 40]], np.float32),
+                   fresh=lambda b: 25.0 * b[:, 2] * b[:, 3] / 40)
+    tracks = mot.update(200_000, none)
+    assert [(t.ident, t.state) for t in tracks] == [(1, LOST)]
+
+
 def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [100, 100, 20, 20], [0, 0, 0, 0], 5)  # a piece of a target, tracked

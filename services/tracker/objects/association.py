@@ -8,7 +8,8 @@ knew it was lost. Here:
   a target going behind another keeps its usual size where its detection is cut by the other's box;
   a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
   blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
-  `hold_us`; one that leaves the image is lost, and a target confirmed at that border with its size (on the axis
+  `hold_us`; one that stops at a border with its whole size in view is held too, but one that
+  leaves the image is lost, and a target confirmed at that border with its size (on the axis
   the border does not cut) takes its id back, wherever along the border it comes in, unless two
   lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
 - two tracks that share one detection (crossing targets; not one with a detection of its own, a
@@ -40,6 +41,7 @@ import numpy as np
 TENTATIVE, TRACKED, LOST = 0, 1, 2
 LEFT, TOP, RIGHT, BOTTOM = 1, 2, 4, 8  # the image borders a box touches, as bits
 CUT_X, CUT_Y = LEFT | RIGHT, TOP | BOTTOM  # borders that cut a box's width, its height
+WHOLE = 0.9  # a box this share of its track's usual size or more shows the whole target
 SIZE_MEMORY = 32  # measurements of a track's size kept for re-identification
 _GONE = -1  # merged or expired during an update; removed before it returns
 
@@ -161,7 +163,7 @@ def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
     return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
 
 
-def _behind(box: Box, usual: Callable[[int], float], others: list[Box], least: float = 0.9) -> Box:
+def _behind(box: Box, usual: Callable[[int], float], others: list[Box]) -> Box:
     """A detection cut on one side by another track's box (a nearer target hides that side) and
     narrower (shorter) than its track's `usual` width (height), given that size back on the hidden side."""
     out = list(box)
@@ -171,7 +173,7 @@ def _behind(box: Box, usual: Callable[[int], float], others: list[Box], least: f
                   and o[1 - axis] + o[3 - axis] > box[1 - axis]]  # overlapping it on the other axis
         cut_lo = any(o[axis] < lo <= o[axis] + o[2 + axis] + 1 for o in across)
         cut_hi = any(o[axis] - 1 <= hi < o[axis] + o[2 + axis] for o in across)
-        if cut_lo != cut_hi and box[2 + axis] < least * (full := usual(axis)):
+        if cut_lo != cut_hi and box[2 + axis] < WHOLE * (full := usual(axis)):
             out[axis], out[2 + axis] = (hi - full if cut_lo else lo), full
     return out[0], out[1], out[2], out[3]
 
@@ -434,7 +436,7 @@ class MultiObjectTracker:
             if t_us - tr.t_us > p.forget_after_us:
                 tr.state = _GONE
             return
-        if self._sides(tr.box):
+        if self._sides(tr.box) and not self._stopped_in_view(tr):
             tr.state, tr.vel, tr.t_us = LOST, (0.0, 0.0), t_us  # waits where it left, to be found if it comes back
             return
         hidden = _alone(pred, observed)[1] <= 0.5
@@ -443,6 +445,14 @@ class MultiObjectTracker:
             pred = tr.predict(t_us)
         self._coast(tr, pred, t_us)
         tr.score *= 0.995
+
+    def _stopped_in_view(self, tr: Track) -> bool:
+        """Whether a track at a border is a target that stopped there, held with its whole size in view
+        (not one that left: that shrinks as it goes, and is held, if at all, with a sliver of it left)."""
+        sides = self._sides(tr.box)
+        return tr.vel == (0.0, 0.0) and all(
+            not sides & cut or tr.box[2 + axis] >= WHOLE * tr.usual_size(axis)
+            for axis, cut in ((0, CUT_X), (1, CUT_Y)))
 
     def _coast(self, tr: Track, box: Box, t_us: int) -> None:
         """A confirmed track moved to `box` without a sighting: lost once unseen for `hold_us`."""
