@@ -196,6 +196,13 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     mot.update(150_000, none)
     tracks = _follow(mot, 400_000, [340, 60, 6, 20], [0, 0, 0, 0], 5)  # back with its usual height
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [342, 103, 4, 14], [-1, 0, 1, 0], 5)  # its first sliver too short to tell ...
+    assert [t.ident for t in tracks if t.state == TRACKED] == [2]
+    tracks = _follow(mot, 350_000, [335, 100, 11, 20], [-2, 0, 2, 0], 3)  # ... but its size as it comes in
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:

@@ -9,9 +9,10 @@ knew it was lost. Here:
   a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
   blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
   `hold_us`; one that stops at a border with its whole size in view is held too, but one that
-  leaves the image is lost, and a target confirmed at that border with its size (on the axis
-  the border does not cut) takes its id back, wherever along the border it comes in, unless two
-  lost tracks fit about as well (seed 002 re-identifies a target back in view by its likeness);
+  leaves the image is lost, and a target coming in at that border with its size (on the axis
+  the border does not cut, measured again as more of it comes in) takes its id back, wherever
+  along the border it comes in, unless two lost tracks fit about as well (seed 002 re-identifies a
+  target back in view by its likeness);
 - two tracks that share one detection (crossing targets; not one with a detection of its own, a
   small target seen inside a big one's box) keep their sizes instead of collapsing onto the merged
   blob (up to slow corrections towards the events), and a `layout` places them on its events (see
@@ -102,6 +103,7 @@ class Track:
     # the latest `SIZE_MEMORY`: their median is the size it is known by when it comes back
     widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
+    entering: bool = False  # confirmed young at a border and not (yet) known as a target that left
 
     def full_size(self, axis: int) -> float | None:
         """Its usual width (axis 0) or height (1) in full view, if ever seen so."""
@@ -419,8 +421,9 @@ class MultiObjectTracker:
         tr.t_us = tr.last_seen_us = t_us
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
-            if tr.state == TENTATIVE:
-                self._reidentify(tr)
+            if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
+                entering = t_us - tr.first_seen_us < p.young_us and bool(self._sides(tr.box))
+                tr.entering = entering and not self._reidentify(tr)
             tr.state = TRACKED
 
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
@@ -467,13 +470,15 @@ class MultiObjectTracker:
         return ((box[0] <= 1) * LEFT | (box[1] <= 1) * TOP | (box[0] + box[2] >= self.width - 1) * RIGHT
                 | (box[1] + box[3] >= self.height - 1) * BOTTOM)
 
-    def _reidentify(self, new: Track) -> None:
-        """Seed 002's re-detection of a target back in view: a track confirmed at a border takes the id
+    def _reidentify(self, new: Track) -> bool:
+        """Seed 002's re-detection of a target back in view: a track coming in at a border takes the id
         of the lost track that left through that border with its size (on the axis the border does
-        not clip); where two fit, only one that fits clearly better than the other (else it stays new)."""
+        not clip); where two fit, only one that fits clearly better than the other (else it stays new,
+        and is tried again on its next measurement while it comes in, as its size grows to the whole
+        of it). Whether it took an id."""
         sides = self._sides(new.box)
         if not sides or (sides & CUT_X and sides & CUT_Y):
-            return
+            return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
         p = self.params
         misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)
@@ -483,6 +488,8 @@ class MultiObjectTracker:
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = self.tracks[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE
+            return True
+        return False
 
     def reset(self) -> None:
         self.tracks = []
