@@ -239,6 +239,14 @@ def test_association_keeps_two_targets_travelling_side_by_side_apart() -> None:
         boxes = [[100, 100, 30, 30], [140, 100, 30, 30]] if i < 40 else [[100, 100, 70, 30]]
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
     assert [t.ident for t in tracks if t.state == TRACKED] == [1, 2]
+    # one still target partly in front of another: two; two still tracks almost on top of each other: one
+    for overlap_px, folded in ((10, False), (26, True)):
+        mot = MultiObjectTracker(width=346, height=260)
+        for i in range(80):
+            joined = [[100, 100, 60 - overlap_px, 30]]
+            boxes = [[100, 100, 30, 30], [130 - overlap_px, 100, 30, 30]] if i < 40 else joined
+            tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+        assert [t.ident for t in tracks if t.state == TRACKED] == ([1] if folded else [1, 2])
 
 
 def test_key_counter_counts_gaps_and_windows() -> None:

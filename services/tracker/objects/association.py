@@ -73,7 +73,10 @@ class AssociationParams:
     # tracks in one detection moving within this of each other are one target seen in pieces; looser, it
     # would fold two targets travelling side by side into one
     same_velocity_px_s: float = 15.0
-    alike_iou: float = 0.05  # ... and overlapping by this IoU: two still targets side by side move alike too
+    alike_iou: float = 0.05  # ... and overlapping by this IoU
+    # two still tracks (that moving alike tells nothing of) are one target only if this share of the smaller is
+    # inside the other: two stopped targets side by side, or one partly in front of the other, stay two
+    still_inside: float = 0.8
     young_us: int = 300_000  # a track younger than this merges into an older one it shares with and overlaps
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
@@ -290,8 +293,8 @@ class MultiObjectTracker:
     def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
         """Of tracks sharing one detection, fold each tentative one, each young one overlapping it, or
         one moving with it and overlapping it, into the oldest of them (marked `_GONE`, removed after
-        the update); the members left. Two still targets side by side move alike (not at all) but
-        barely overlap: they stay two."""
+        the update); the members left. Two still targets move alike (not at all): they are folded
+        only if one lies (almost) wholly inside the other."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -300,8 +303,10 @@ class MultiObjectTracker:
             for k in keep:
                 older = self.tracks[k]
                 inter = _overlap(pred[i], pred[k])
+                still = max(math.hypot(*tr.vel), math.hypot(*older.vel)) <= p.same_velocity_px_s
                 alike = (math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
-                         and _iou(pred[i], pred[k], inter) >= p.alike_iou)
+                         and _iou(pred[i], pred[k], inter) >= p.alike_iou
+                         and (not still or inter >= p.still_inside * min(_area(pred[i]), _area(pred[k]))))
                 # a confirmed young track apart from the older one is a second target beside it, not a piece
                 young = t_us - tr.first_seen_us < p.young_us and inter > 0
                 if tr.state == TENTATIVE or young or alike:
