@@ -421,8 +421,9 @@ def test_a_stopped_target_in_a_moving_ones_blob_is_lost_after_the_hold() -> None
 
 
 def test_a_new_target_beside_an_old_one_is_not_folded_into_it_when_their_blobs_join() -> None:
-    """A target just confirmed beside a tracked one (its box apart from the other's) is a second target,
-    not a piece of the first: when the two become one blob it keeps its id, young as it is."""
+    """A target just confirmed beside a tracked one (its box apart from the other's), or crossing it the
+    other way, is a second target, not a piece of the first: when the two become one blob it keeps
+    its id, young as it is."""
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [100, 100, 30, 30], [2, 0, 0, 0], 20)  # one target, tracked for 200 ms
     for i in range(20, 50):  # a second one comes in 8 px below it; from i = 26 the two are one blob
@@ -431,6 +432,14 @@ def test_a_new_target_beside_an_old_one_is_not_folded_into_it_when_their_blobs_j
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, TRACKED)]
     assert tracks[1].box[1] == pytest.approx(138, abs=3)
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [100, 100, 30, 30], [2, 0, 0, 0], 20)
+    for k in range(30):  # a young target crossing it the other way (400 px/s apart): one blob for k = 8..21
+        a, b = [140 + 2 * k, 100, 30, 30], [200 - 2 * k, 110, 30, 30]
+        boxes = [a, b] if not 8 <= k < 22 else [[min(a[0], b[0]), 100, abs(a[0] - b[0]) + 30, 40]]
+        tracks = mot.update((20 + k) * 10_000, np.array(boxes, np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, TRACKED)]
+    assert tracks[1].box[0] < tracks[0].box[0]  # each on its own target, past each other
 
 
 def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:

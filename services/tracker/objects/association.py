@@ -77,7 +77,8 @@ class AssociationParams:
     # two still tracks (that moving alike tells nothing of) are one target only if this share of the smaller is
     # inside the other: two stopped targets side by side, or one partly in front of the other, stay two
     still_inside: float = 0.8
-    young_us: int = 300_000  # a track younger than this merges into an older one it shares with and overlaps
+    young_us: int = 300_000  # a track younger than this merges into an older one it shares with and overlaps,
+    young_unlike_px_s: float = 100.0  # ... unless their velocities differ by more than this (a young one's are rough)
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
@@ -291,10 +292,10 @@ class MultiObjectTracker:
         return list(self.tracks)
 
     def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
-        """Of tracks sharing one detection, fold each tentative one, each young one overlapping it, or
-        one moving with it and overlapping it, into the oldest of them (marked `_GONE`, removed after
-        the update); the members left. Two still targets move alike (not at all): they are folded
-        only if one lies (almost) wholly inside the other."""
+        """Of tracks sharing one detection, fold each tentative one, each young one overlapping it (and
+        not clearly moving otherwise), or one moving with it and overlapping it, into the oldest of
+        them (marked `_GONE`, removed after the update); the members left. Two still targets move
+        alike (not at all): they are folded only if one lies (almost) wholly inside the other."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -307,8 +308,10 @@ class MultiObjectTracker:
                 alike = (math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
                          and _iou(pred[i], pred[k], inter) >= p.alike_iou
                          and (not still or inter >= p.still_inside * min(_area(pred[i]), _area(pred[k]))))
-                # a confirmed young track apart from the older one is a second target beside it, not a piece
-                young = t_us - tr.first_seen_us < p.young_us and inter > 0
+                # a confirmed young track apart from the older one, or moving unlike it, is a second target
+                # beside it (or crossing it), not a piece
+                young = (t_us - tr.first_seen_us < p.young_us and inter > 0
+                         and math.dist(tr.vel, older.vel) <= p.young_unlike_px_s)
                 if tr.state == TENTATIVE or young or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
