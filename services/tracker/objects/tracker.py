@@ -11,6 +11,7 @@ Every stage has the variants of the seeds, chosen by `TrackerParams`:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -55,7 +56,10 @@ class TrackerParams:
 METHODS: dict[str, TrackerParams] = {
     "contour": TrackerParams(),
     "adaptive": TrackerParams(frames="adaptive"),
-    "camshift": TrackerParams(detector="camshift", association=AssociationParams(take_whole=False)),
+    # CamShift windows drift along the edges they climb: the young tracks born beside them are duplicates
+    # whose velocities tell nothing, folded by overlap alone
+    "camshift": TrackerParams(detector="camshift",
+                              association=AssociationParams(take_whole=False, young_unlike_px_s=math.inf)),
     "corner": TrackerParams(detector="corner"),
     "keyevents": TrackerParams(max_events=1),
 }
