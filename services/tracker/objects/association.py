@@ -430,8 +430,8 @@ class MultiObjectTracker:
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
             if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
-                entering = t_us - tr.first_seen_us < p.young_us and bool(self._sides(tr.box))
-                tr.entering = entering and not self._reidentify(tr)
+                tr.entering = (not self._reidentify(tr) and bool(self._sides(tr.box))
+                               and t_us - tr.first_seen_us < p.young_us)
             tr.state = TRACKED
 
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
