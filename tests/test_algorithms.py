@@ -203,6 +203,11 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     assert [t.ident for t in tracks if t.state == TRACKED] == [2]
     tracks = _follow(mot, 350_000, [335, 100, 11, 20], [-2, 0, 2, 0], 3)  # ... but its size as it comes in
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [300, 100, 30, 24], [5, 0, 0, 0], 10)  # out with the trail of a vertical motion (+20%)
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [340, 100, 6, 20], [0, 0, 0, 0], 5)  # back without it
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:

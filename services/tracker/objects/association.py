@@ -62,7 +62,10 @@ class AssociationParams:
     lost_after_us: int = 50_000  # a tentative track unseen this long is dropped
     hold_us: int = 2_000_000  # a confirmed track unseen this long is lost
     forget_after_us: int = 2_000_000  # a track lost this long is forgotten
-    reid_size_ratio: float = 1.15  # a target back through a border has its lost track's size within this ratio
+    # a target back through a border has its lost track's size within this ratio: sizes in the decayed image
+    # include the trail a target's motion leaves (some 5-15% at usual speeds), which differs between its ways
+    # out and back in
+    reid_size_ratio: float = 1.25
     # of two lost tracks that fit, the better one's size error is under this share of the other's
     reid_margin: float = 0.5
     # a track sharing a detection with less than this share of its box outside the others' is hidden behind them
