@@ -307,14 +307,13 @@ class MultiObjectTracker:
             for k in keep:
                 older = self.tracks[k]
                 inter = _overlap(pred[i], pred[k])
+                unlike = math.dist(tr.vel, older.vel)
                 still = max(math.hypot(*tr.vel), math.hypot(*older.vel)) <= p.same_velocity_px_s
-                alike = (math.dist(tr.vel, older.vel) <= p.same_velocity_px_s
-                         and _iou(pred[i], pred[k], inter) >= p.alike_iou
+                alike = (unlike <= p.same_velocity_px_s and _iou(pred[i], pred[k], inter) >= p.alike_iou
                          and (not still or inter >= p.still_inside * min(_area(pred[i]), _area(pred[k]))))
                 # a confirmed young track apart from the older one, or moving unlike it, is a second target
                 # beside it (or crossing it), not a piece
-                young = (t_us - tr.first_seen_us < p.young_us and inter > 0
-                         and math.dist(tr.vel, older.vel) <= p.young_unlike_px_s)
+                young = t_us - tr.first_seen_us < p.young_us and inter > 0 and unlike <= p.young_unlike_px_s
                 if tr.state == TENTATIVE or young or alike:
                     older.hits = max(older.hits, tr.hits)
                     tr.state = _GONE
