@@ -14,7 +14,10 @@ detector, or one that splits touching targets, would reach.
 Speed: every method and MeanShiftTracker on the same 10 ms packets at 346x260 (events per second
 of processing on one core, ms per update), and the default method's update of a 15 ms window. The
 objects scene is simulated with a lower contrast threshold so that it streams about 1 Mev/s, the
-rate the issue's figures for MeanShiftTracker (0.37 ms per 10 ms packet) were taken at.
+rate the issue's figures for MeanShiftTracker (0.37 ms per 10 ms packet) were taken at. Each is
+timed in `SPEED_ROUNDS` rounds that take turns with the others, and its fastest round is reported
+(as `timeit` does): on a shared machine a slow round measures the neighbours, and taking turns
+gives every tracker the same chance of a quiet one.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s"
 DV_BANDWIDTH_PX = 20
 PACKET_US = 10_000
 SPEED_SIM = SimParams(contrast=0.06)  # the objects scene at about 1 Mev/s
+SPEED_ROUNDS = 3
 
 
 def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> list[dict]:
@@ -140,24 +144,36 @@ def _dv_track(h5: Path, out: Path) -> float:
 
 def speed(quick: bool = False) -> list[dict]:
     """Events per second of processing and ms per update, per method and for MeanShiftTracker."""
-    rows = []
     with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
         h5 = Path(tmp) / "objects.h5"
         duration_s = 2.0 if quick else 6.0
         simulate("objects", h5, duration_s, seed=11, progress=False, params=SPEED_SIM)
         packets, width, height = _packets(h5)
         n_events = sum(len(p) for _, p in packets)
-        stream = {"stream_events_per_s": n_events / duration_s}
-        for method in METHODS:
-            rows.append(_time_tracker(method, packets, width, height, n_events, PACKET_US) | stream)
+        rounds = 1 if quick else SPEED_ROUNDS
+        stream = {"stream_events_per_s": n_events / duration_s, "rounds": rounds}
         windows, _, _ = _packets(h5, 15_000)
-        rows.append(_time_tracker(DEFAULT_METHOD, windows, width, height, sum(len(w) for _, w in windows),
-                                  15_000) | stream)
-        elapsed = _dv_track(h5, Path(tmp) / "dv.csv")
-        rows.append({"stage": "tracker speed", "method": "dv MeanShiftTracker", "window_ms": PACKET_US / 1e3,
-                     "events": n_events, "events_per_s": n_events / elapsed,
-                     "update_ms_p50": elapsed / len(packets) * 1e3} | stream)
-    return rows
+        timings = []
+        for _ in range(rounds):
+            timed = [_time_tracker(method, packets, width, height, n_events, PACKET_US) for method in METHODS]
+            timed.append(_time_tracker(DEFAULT_METHOD, windows, width, height, sum(len(w) for _, w in windows),
+                                       15_000))
+            elapsed = _dv_track(h5, Path(tmp) / "dv.csv")
+            timed.append({"stage": "tracker speed", "method": "dv MeanShiftTracker", "window_ms": PACKET_US / 1e3,
+                          "events": n_events, "events_per_s": n_events / elapsed,
+                          "update_ms_p50": elapsed / len(packets) * 1e3})
+            timings.extend(timed)
+    return [row | stream for row in fastest(timings)]
+
+
+def fastest(timings: list[dict]) -> list[dict]:
+    """Of rows timing the same tracker and window in several rounds, the fastest, in first-seen order."""
+    best: dict[tuple[str, float], dict] = {}
+    for row in timings:
+        key = (row["method"], row["window_ms"])
+        if key not in best or row["events_per_s"] > best[key]["events_per_s"]:
+            best[key] = row
+    return list(best.values())
 
 
 def _time_tracker(method: str, packets: list[tuple[int, np.ndarray]], width: int, height: int, n_events: int,

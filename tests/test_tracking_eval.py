@@ -135,6 +135,16 @@ def test_bench_tracker_speed_rows_print_as_a_table() -> None:
     assert text.count("tracker speed") == len(rows) and "dv MeanShiftTracker" in text
 
 
+def test_bench_tracker_speed_keeps_each_trackers_fastest_round() -> None:
+    from benchmarks.tracking import fastest
+
+    rounds = [{"method": "a", "window_ms": 10.0, "events_per_s": 5.0}, {"method": "a", "window_ms": 15.0,
+              "events_per_s": 1.0}, {"method": "b", "window_ms": 10.0, "events_per_s": 2.0},
+              {"method": "a", "window_ms": 10.0, "events_per_s": 4.0}, {"method": "a", "window_ms": 15.0,
+              "events_per_s": 3.0}, {"method": "b", "window_ms": 10.0, "events_per_s": 7.0}]
+    assert fastest(rounds) == [rounds[0], rounds[4], rounds[5]]
+
+
 def test_bench_latency_times_updates_of_a_running_rig() -> None:
     from benchmarks import latency, suite
 
