@@ -35,7 +35,7 @@ from services.camera.simulator import SimParams
 from services.tracker.offline import CSV_HEADER, eval_tracking, track
 from services.tracker.evaluation import split_frames
 from services.tracker.objects.association import intersection, union
-from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params
+from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params, warm_up
 
 FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute")
 DV_BANDWIDTH_PX = 20
@@ -178,10 +178,7 @@ def fastest(timings: list[dict]) -> list[dict]:
 
 def _time_tracker(method: str, packets: list[tuple[int, np.ndarray]], width: int, height: int, n_events: int,
                   window_us: int) -> dict:
-    warm = ObjectTracker(width, height, method_params(method))  # numba kernels loaded before timing
-    for t_us, ev in packets[:5]:
-        warm.accept(ev)
-        warm.generate(t_us)
+    warm_up(method_params(method))  # numba kernels loaded before timing
     tracker = ObjectTracker(width, height, method_params(method))
     per_update = []
     t0 = time.perf_counter()

@@ -107,3 +107,22 @@ def test_every_method_follows_simulated_objects(method: str, seed: int, floor: f
             if len(live):
                 matched += int((iou(truth, live).max(axis=1) > 0.3).sum())
     assert total > 0 and matched / total > floor
+
+
+def test_warm_up_loads_every_kernel_of_a_default_update_including_the_layout_of_a_shared_blob() -> None:
+    """In a fresh interpreter, as a service starts: no kernel of an update is left to load on live packets."""
+    import json
+    import subprocess
+    import sys
+
+    code = """
+import json
+from services.tracker.objects import accumulator, activity, clusters, layout
+from services.tracker.objects.tracker import warm_up
+kernels = (accumulator._add, accumulator._decay, activity._count, activity._count_in, clusters._detect, layout._placed)
+assert not any(k.signatures for k in kernels)
+warm_up()
+print(json.dumps([len(k.signatures) for k in kernels]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert json.loads(out.stdout) == [1] * 6

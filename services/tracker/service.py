@@ -17,7 +17,7 @@ from services import keys
 from services.messages import CameraInfo, Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
 from services.runtime import Service, ServiceOptions
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
-from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet
+from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,7 @@ class TrackerService(Service):
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
+        await asyncio.to_thread(warm_up, self.tracker_params)  # before any packet can queue up
         events = self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=1024)
         async for key, msg in events:
             assert isinstance(msg, EventPacket)

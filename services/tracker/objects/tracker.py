@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from services import events as ev_ops
+from services.messages import EVENT_DTYPE
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.activity import FreshCounts
 from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
@@ -174,3 +175,22 @@ class ObjectTracker:
         self.association.reset()
         self.fresh.reset()
         self._sampled = []
+
+
+def warm_up(params: TrackerParams | None = None) -> None:
+    """Loads the numba kernels of an update (compiles them, the first time on a machine) on two small
+    squares that cross, so that a live tracker's first packets wait for none of it: loading them took
+    over a second on a busy machine, while the camera's packets queued up and the oldest were dropped."""
+    width, height, side = 96, 48, 12
+    tracker = ObjectTracker(width, height, params)
+    ys, xs = np.mgrid[:side, :side].reshape(2, -1)
+    for step in range(40):
+        t_us = (step + 1) * 10_000
+        events = np.zeros(2 * len(xs), EVENT_DTYPE)
+        for k, x0 in enumerate((4 + 2 * step, width - side - 4 - 2 * step)):
+            part = events[k * len(xs):(k + 1) * len(xs)]
+            part["x"], part["y"] = np.clip(xs + x0, 0, width - 1), ys + 18
+            part["t"] = t_us - 10_000 + np.arange(len(xs)) * 10_000 // len(xs)
+            part["p"] = 1
+        tracker.accept(ev_ops.sort_by_time(events))
+        tracker.generate(t_us)
