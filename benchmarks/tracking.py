@@ -153,6 +153,8 @@ def speed(quick: bool = False) -> list[dict]:
         rounds = 1 if quick else SPEED_ROUNDS
         stream = {"stream_events_per_s": n_events / duration_s, "rounds": rounds}
         windows, _, _ = _packets(h5, 15_000)
+        for method in METHODS:
+            warm_up(method_params(method))  # numba kernels loaded before any timing
         timings = []
         for _ in range(rounds):
             timed = [_time_tracker(method, packets, width, height, n_events, PACKET_US) for method in METHODS]
@@ -178,7 +180,6 @@ def fastest(timings: list[dict]) -> list[dict]:
 
 def _time_tracker(method: str, packets: list[tuple[int, np.ndarray]], width: int, height: int, n_events: int,
                   window_us: int) -> dict:
-    warm_up(method_params(method))  # numba kernels loaded before timing
     tracker = ObjectTracker(width, height, method_params(method))
     per_update = []
     t0 = time.perf_counter()

@@ -189,7 +189,7 @@ def warm_up(params: TrackerParams | None = None) -> None:
         events = np.zeros(2 * len(xs), EVENT_DTYPE)
         for k, x0 in enumerate((4 + 2 * step, width - side - 4 - 2 * step)):
             part = events[k * len(xs):(k + 1) * len(xs)]
-            part["x"], part["y"] = np.clip(xs + x0, 0, width - 1), ys + 18
+            part["x"], part["y"] = xs + x0, ys + 18  # x0 stays within 0..width - side
             part["t"] = t_us - 10_000 + np.arange(len(xs)) * 10_000 // len(xs)
             part["p"] = 1
         tracker.accept(ev_ops.sort_by_time(events))
