@@ -447,6 +447,23 @@ def test_a_new_target_beside_an_old_one_is_not_folded_into_it_when_their_blobs_j
     assert tracks[1].box[0] < tracks[0].box[0]  # each on its own target, past each other
 
 
+def test_a_target_coming_out_from_behind_a_nearer_one_gets_its_id_back() -> None:
+    """Seed 002's re-detection after occlusion: a still target that a bigger one stops in front of,
+    and that later comes out from under the bigger one's edge (a sliver growing to its size), takes
+    its id back instead of starting a new track; one of another size does not."""
+    for width, same in ((30, True), (50, False)):
+        mot = MultiObjectTracker(width=346, height=260)
+        for i in range(140):
+            small = [150, 110 + max(0, i - 100), 30, 30]  # still, then down at 100 px/s from i = 100
+            big = [20 + 1.5 * min(i, 63), 80, 80, 80]  # 150 px/s, over the small one from i = 63 on
+            seen = [big] if 30 <= i else [small, big]  # the small one stops: its events end at i = 30
+            if small[1] + 30 > 160:  # out under the big one's bottom edge
+                seen.append([150 + (30 - width) / 2, 160, width, small[1] + 30 - 160])
+            tracks = mot.update(i * 10_000, np.array(seen, np.float32))
+        below = [t for t in tracks if t.state == TRACKED and t.box[1] >= 150]
+        assert len(below) == 1 and (below[0].ident == 1) == same, [(t.ident, t.box) for t in tracks]
+
+
 def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:
     """A small target crossing in front of a big one has a detection of its own inside the big one's:
     it follows that detection (here it turns back) rather than being placed as one of a shared blob."""

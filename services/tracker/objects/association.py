@@ -23,7 +23,9 @@ knew it was lost. Here:
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
   takes that detection whole;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
-  prediction before `forget_after_us`.
+  prediction before `forget_after_us`; a target coming out from behind a nearer one (a new track
+  at the edge of that one's box) takes back the id of the track hidden there, by its size, as one
+  coming back in at a border does.
 
 An update sees a handful of tracks and detections, so the boxes are plain tuples of floats: numpy's
 per-call cost on arrays of three boxes was most of an update's time.
@@ -439,7 +441,8 @@ class MultiObjectTracker:
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
             if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
-                tr.entering = (not self._reidentify(tr) and bool(self._sides(tr.box))
+                found = self._reidentify(tr) or self._out_from_behind(tr)
+                tr.entering = (not found and bool(self._sides(tr.box) or self._occluders(tr))
                                and t_us - tr.first_seen_us < p.young_us)
             tr.state = TRACKED
 
@@ -497,13 +500,40 @@ class MultiObjectTracker:
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
+        return self._take_id(new, axis, [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides])
+
+    def _out_from_behind(self, new: Track) -> bool:
+        """The same for a target coming out from behind a nearer one: a new track beside a confirmed
+        track's box takes the id of a track unseen since before it appeared (hidden, or lost there)
+        whose box lies mostly inside that box, if its size fits on the axis the nearer one's edge does
+        not cut. Whether it took an id."""
+        for near in self._occluders(new):
+            (nx, ny), (ox, oy) = _centre(new.box), _centre(near.box)
+            # beside its edge (apart more on x than on y, for their sizes), its width is cut: its height is whole
+            axis = 1 if abs(nx - ox) / (near.box[2] + new.box[2]) > abs(ny - oy) / (near.box[3] + new.box[3]) else 0
+            hidden = [tr for tr in self.tracks if tr is not new and tr is not near and tr.state in (TRACKED, LOST)
+                      and tr.last_seen_us < new.first_seen_us and not self._sides(tr.box)
+                      and _overlap(tr.box, near.box) >= 0.5 * _area(tr.box)]
+            if self._take_id(new, axis, hidden):
+                return True
+        return False
+
+    def _occluders(self, new: Track) -> list[Track]:
+        """Confirmed tracks whose box `new`'s touches: what it may come out from behind."""
+        x, y, w, h = new.box
+        m = 0.25 * max(w, h)
+        grown = (x - m, y - m, w + 2 * m, h + 2 * m)
+        return [tr for tr in self.tracks if tr is not new and tr.state == TRACKED and _overlap(grown, tr.box) > 0]
+
+    def _take_id(self, new: Track, axis: int, lost: list[Track]) -> bool:
+        """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
+        fit, only one that fits clearly better); that one is removed. Whether it took an id."""
         p = self.params
         misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)
-                        for i, tr in enumerate(self.tracks)
-                        if tr.state == LOST and self._sides(tr.box) & sides and (size := tr.full_size(axis)))
+                        for i, tr in enumerate(lost) if (size := tr.full_size(axis)))
         misfit = [m for m in misfit if m[0] < math.log(p.reid_size_ratio)]
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
-            found = self.tracks[misfit[0][1]]
+            found = lost[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE
             return True
         return False
