@@ -505,15 +505,15 @@ class MultiObjectTracker:
     def _out_from_behind(self, new: Track) -> bool:
         """The same for a target coming out from behind a nearer one: a new track beside a confirmed
         track's box takes the id of a track unseen since before it appeared (hidden, or lost there)
-        whose box lies mostly inside that box, if its size fits on the axis the nearer one's edge does
-        not cut. Whether it took an id."""
+        whose box overlaps that box (where it coasted while hidden is a guess), if its size fits on the
+        axis the nearer one's edge does not cut. Whether it took an id."""
         for near in self._occluders(new):
             (nx, ny), (ox, oy) = _centre(new.box), _centre(near.box)
             # beside its edge (apart more on x than on y, for their sizes), its width is cut: its height is whole
             axis = 1 if abs(nx - ox) / (near.box[2] + new.box[2]) > abs(ny - oy) / (near.box[3] + new.box[3]) else 0
             hidden = [tr for tr in self.tracks if tr is not new and tr is not near and tr.state in (TRACKED, LOST)
                       and tr.last_seen_us < new.first_seen_us and not self._sides(tr.box)
-                      and _overlap(tr.box, near.box) >= 0.5 * _area(tr.box)]
+                      and _overlap(tr.box, near.box) > 0]
             if self._take_id(new, axis, hidden):
                 return True
         return False
