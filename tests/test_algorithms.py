@@ -208,6 +208,11 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     mot.update(100_000, none)
     tracks = _follow(mot, 300_000, [340, 100, 6, 20], [0, 0, 0, 0], 5)  # back without it
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [306, 100, 40, 20], [0, 0, 0, 0], 5)  # as tall, but wider than it was whole
+    assert [t.ident for t in tracks if t.state == TRACKED] == [2]
 
 
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:

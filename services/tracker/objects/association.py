@@ -493,9 +493,9 @@ class MultiObjectTracker:
     def _reidentify(self, new: Track) -> bool:
         """Seed 002's re-detection of a target back in view: a track coming in at a border takes the id
         of the lost track that left through that border with its size (on the axis the border does
-        not clip); where two fit, only one that fits clearly better than the other (else it stays new,
-        and is tried again on its next measurement while it comes in, as its size grows to the whole
-        of it). Whether it took an id."""
+        not clip, and no bigger than it on the other); where two fit, only one that fits clearly better
+        than the other (else it stays new, and is tried again on its next measurement while it comes
+        in, as its size grows to the whole of it). Whether it took an id."""
         sides = self._sides(new.box)
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return False
@@ -527,10 +527,13 @@ class MultiObjectTracker:
 
     def _take_id(self, new: Track, axis: int, lost: list[Track]) -> bool:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
-        fit, only one that fits clearly better); that one is removed. Whether it took an id."""
+        fit, only one that fits clearly better) and on the other axis, cut as it may be, is not much
+        smaller than its own; that one is removed. Whether it took an id."""
         p = self.params
+        cut = new.box[3 - axis]
         misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)
-                        for i, tr in enumerate(lost) if (size := tr.full_size(axis)))
+                        for i, tr in enumerate(lost) if (size := tr.full_size(axis))
+                        and cut <= p.reid_size_ratio * (tr.full_size(1 - axis) or math.inf))
         misfit = [m for m in misfit if m[0] < math.log(p.reid_size_ratio)]
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = lost[misfit[0][1]]
