@@ -545,11 +545,12 @@ def test_cell_grid_kernels_equal_opencv() -> None:
             counts = rng.integers(0, 17, (rows, cols)).astype(np.int32)
             blurred = cv2.blur(counts.astype(np.float32) / 16, (size, size))
             assert np.array_equal(cells.box_sums(counts, size) > 0.08 * size * size * 16, blurred > 0.08)
-        image = rng.random((rows * 4 - 1, cols * 4 - 3)).astype(np.float32)
-        full = np.zeros((rows * 4, cols * 4), np.float32)
-        full[:image.shape[0], :image.shape[1]] = image >= np.float32(0.5)
-        expected = full.reshape(rows, 4, cols, 4).sum(axis=(1, 3))
-        assert np.array_equal(cells.occupancy(image, 4, np.float32(0.5)), expected)
+        for cell in (2, 3, 4):  # the packed sums of 2 and 4 px cells, and any other size
+            image = rng.random((rows * cell - 1, cols * cell - cell + 1)).astype(np.float32)
+            full = np.zeros((rows * cell, cols * cell), np.float32)
+            full[:image.shape[0], :image.shape[1]] = image >= np.float32(0.5)
+            expected = full.reshape(rows, cell, cols, cell).sum(axis=(1, 3))
+            assert np.array_equal(cells.occupancy(image, cell, np.float32(0.5)), expected)
 
 
 def test_clusters_split_two_targets_that_the_smoothing_joins() -> None:

@@ -18,20 +18,41 @@ X, Y, W, H, AREA = range(5)  # columns of the component stats
 @numba.njit(cache=True, nogil=True)
 def occupancy(image, cell, active):  # noqa: ANN001, ANN201 - numba kernel
     """Per `cell` x `cell` square, how many pixels reach `active` (int32, partial squares at the
-    right and bottom count their missing pixels as empty)."""
+    right and bottom count their missing pixels as empty). Each cell row is counted per pixel
+    column in bytes (the compare loop then runs on 32 lanes at a time), then summed per cell."""
     h, w = image.shape
     rows, cols = -(-h // cell), -(-w // cell)
     out = np.zeros((rows, cols), np.int32)
-    column = np.zeros(cols * cell, np.int32)  # per pixel column, over the rows of one cell row
+    column = np.zeros(cols * cell, np.uint8)  # per pixel column, over the rows of one cell row
     for cy in range(rows):
         column[:] = 0
         for y in range(cy * cell, min(cy * cell + cell, h)):
             src = image[y]
             for x in range(w):
                 column[x] += src[x] >= active
-        for cx in range(cols):
-            out[cy, cx] = column[cx * cell:cx * cell + cell].sum()
+        _cell_sums(column, cell, out[cy])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_sums(column, cell, out):  # noqa: ANN001, ANN202 - numba kernel
+    """`out[i]` = the sum of bytes `i * cell` ... `(i + 1) * cell - 1` of `column`. Cells of 4 (2) px
+    read their bytes as one 32 (16) bit word: times 0x01010101 (0x0101), the bytes' sum lands in
+    the top byte (each at most `cell`, so no sum carries), whichever the byte order."""
+    if cell == 4:
+        words = column.view(np.uint32)
+        for i in range(len(out)):
+            out[i] = ((words[i] * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(0xFF)
+    elif cell == 2:
+        halves = column.view(np.uint16)
+        for i in range(len(out)):
+            out[i] = ((halves[i] * np.uint16(0x0101)) >> np.uint16(8)) & np.uint16(0xFF)
+    else:
+        for i in range(len(out)):
+            total = 0
+            for j in range(i * cell, i * cell + cell):
+                total += column[j]
+            out[i] = total
 
 
 @numba.njit(cache=True, nogil=True)
@@ -55,61 +76,56 @@ def _reflected(n, r):  # noqa: ANN001, ANN202 - numba kernel
 
 @numba.njit(cache=True, nogil=True)
 def box_sums(counts, window):  # noqa: ANN001, ANN201 - numba kernel
-    """The counts summed over a `window` x `window` square around each cell (borders reflected);
-    running sums, along x and then along y, reading through tables of reflected indices."""
+    """The counts summed over a `window` x `window` square around each cell (borders reflected):
+    along x on each row copied with its reflected borders, then along y over whole rows, each sum
+    a loop over contiguous cells that the compiler runs on many at once."""
     rows, cols = counts.shape
     r = window // 2
     at_x, at_y = _reflected(cols, r), _reflected(rows, r)
-    across = np.empty((rows, cols), np.int32)
+    across = np.zeros((rows, cols), np.int32)
+    padded = np.empty(cols + 2 * r, np.int32)
     for y in range(rows):
-        src = counts[y]
-        total = 0
-        for i in range(2 * r):
-            total += src[at_x[i]]
-        for x in range(cols):
-            total += src[at_x[x + 2 * r]]
-            across[y, x] = total
-            total -= src[at_x[x]]
-    out = np.empty((rows, cols), np.int32)
-    total_row = np.zeros(cols, np.int32)
-    for i in range(2 * r):
-        total_row += across[at_y[i]]
+        src, dst = counts[y], across[y]
+        for i in range(cols + 2 * r):
+            padded[i] = src[at_x[i]]
+        for d in range(2 * r + 1):
+            for x in range(cols):
+                dst[x] += padded[x + d]
+    out = np.zeros((rows, cols), np.int32)
     for y in range(rows):
-        total_row += across[at_y[y + 2 * r]]
-        out[y] = total_row
-        total_row -= across[at_y[y]]
+        dst = out[y]
+        for d in range(2 * r + 1):
+            src = across[at_y[y + d]]
+            for x in range(cols):
+                dst[x] += src[x]
     return out
 
 
 @numba.njit(cache=True, nogil=True)
 def close(mask, kernel):  # noqa: ANN001, ANN201 - numba kernel
-    """Morphological closing (dilation, outside empty, then erosion, outside full) of a sparse 0/1
-    mask by a symmetric 0/1 kernel: the dilation only works at the set cells, and both passes on a
-    copy padded by the kernel's reach, so no step tests a border."""
+    """Morphological closing (dilation, outside empty, then erosion, outside full) of a 0/1 mask by
+    a symmetric 0/1 kernel, on a copy padded by the kernel's reach, so no step tests a border. Each
+    pass ORs (ANDs) whole rows shifted by one kernel offset at a time: loops the compiler runs on
+    many cells at once."""
     rows, cols = mask.shape
     ry, rx = kernel.shape[0] // 2, kernel.shape[1] // 2
     dys, dxs = np.nonzero(kernel)
     grown = np.zeros((rows + 2 * ry, cols + 2 * rx), np.uint8)
-    for y in range(rows):
-        for x in range(cols):
-            if mask[y, x]:
-                for k in range(len(dys)):
-                    grown[y + dys[k], x + dxs[k]] = 1
+    for k in range(len(dys)):
+        for y in range(rows):
+            dst, src = grown[y + dys[k], dxs[k]:dxs[k] + cols], mask[y]
+            for x in range(cols):
+                dst[x] |= src[x]
     grown[:ry] = 1  # outside counts as full for the erosion
     grown[rows + ry:] = 1
     grown[:, :rx] = 1
     grown[:, cols + rx:] = 1
-    out = np.zeros_like(mask)
-    for y in range(rows):
-        for x in range(cols):
-            if not grown[y + ry, x + rx]:
-                continue
-            keep = 1
-            for k in range(len(dys)):
-                if not grown[y + dys[k], x + dxs[k]]:
-                    keep = 0
-                    break
-            out[y, x] = keep
+    out = np.ones_like(mask)
+    for k in range(len(dys)):
+        for y in range(rows):
+            dst, src = out[y], grown[y + dys[k], dxs[k]:dxs[k] + cols]
+            for x in range(cols):
+                dst[x] &= src[x]
     return out
 
 
