@@ -16,6 +16,7 @@ import numba
 import numpy as np
 
 FLOOR = 1e-3  # far below any weight a detector looks at (an event some 7 tau ago)
+_UNWEIGHTED = np.ones(1, np.float32)  # `_add`'s weights where every event weighs 1
 
 
 class DecayedAccumulator:
@@ -41,7 +42,7 @@ class DecayedAccumulator:
                    np.float32(FLOOR))
         for ev, weights in self._pending:
             _add(self.image, ev["x"], ev["y"], ev["t"], t_us, self._weight_by_age,
-                 np.ones(1, np.float32) if weights is None else weights)
+                 _UNWEIGHTED if weights is None else weights)
         self._pending = []
         self.t_us = t_us
         return self.image

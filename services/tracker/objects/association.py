@@ -410,7 +410,7 @@ class MultiObjectTracker:
         if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
             # its box has more new events than it had itself while it moved
             return tr.state == TRACKED and tr.vel == (0.0, 0.0) and new_in[k] < tr.rate
-        own = max(new_in[k] - float(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).sum()), 0.0)
+        own = max(new_in[k] - sum(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).tolist()), 0.0)
         busiest = max(n / _area(b) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k)
         return own < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, own, share)
 

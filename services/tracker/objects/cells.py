@@ -19,40 +19,34 @@ X, Y, W, H, AREA = range(5)  # columns of the component stats
 def occupancy(image, cell, active):  # noqa: ANN001, ANN201 - numba kernel
     """Per `cell` x `cell` square, how many pixels reach `active` (int32, partial squares at the
     right and bottom count their missing pixels as empty). Each cell row is counted per pixel
-    column in bytes (the compare loop then runs on 32 lanes at a time), then summed per cell."""
+    column in bytes (the compare loop then runs on 32 lanes at a time), then summed per cell:
+    cells of 4 (2) px read their bytes as one 32 (16) bit word, which times 0x01010101 (0x0101)
+    has the bytes' sum in its top byte (each at most `cell`: no sum carries, in either byte order)."""
     h, w = image.shape
     rows, cols = -(-h // cell), -(-w // cell)
     out = np.zeros((rows, cols), np.int32)
-    column = np.zeros(cols * cell, np.uint8)  # per pixel column, over the rows of one cell row
+    column = np.zeros(-(-cols * cell // 4) * 4, np.uint8)  # per pixel column, over the rows of one cell row
+    words, halves = column.view(np.uint32), column.view(np.uint16)
     for cy in range(rows):
         column[:] = 0
         for y in range(cy * cell, min(cy * cell + cell, h)):
             src = image[y]
             for x in range(w):
                 column[x] += src[x] >= active
-        _cell_sums(column, cell, out[cy])
+        dst = out[cy]
+        if cell == 4:
+            for i in range(cols):
+                dst[i] = ((words[i] * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(0xFF)
+        elif cell == 2:
+            for i in range(cols):
+                dst[i] = ((halves[i] * np.uint16(0x0101)) >> np.uint16(8)) & np.uint16(0xFF)
+        else:
+            for i in range(cols):
+                total = 0
+                for j in range(i * cell, i * cell + cell):
+                    total += column[j]
+                dst[i] = total
     return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _cell_sums(column, cell, out):  # noqa: ANN001, ANN202 - numba kernel
-    """`out[i]` = the sum of bytes `i * cell` ... `(i + 1) * cell - 1` of `column`. Cells of 4 (2) px
-    read their bytes as one 32 (16) bit word: times 0x01010101 (0x0101), the bytes' sum lands in
-    the top byte (each at most `cell`, so no sum carries), whichever the byte order."""
-    if cell == 4:
-        words = column.view(np.uint32)
-        for i in range(len(out)):
-            out[i] = ((words[i] * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(0xFF)
-    elif cell == 2:
-        halves = column.view(np.uint16)
-        for i in range(len(out)):
-            out[i] = ((halves[i] * np.uint16(0x0101)) >> np.uint16(8)) & np.uint16(0xFF)
-    else:
-        for i in range(len(out)):
-            total = 0
-            for j in range(i * cell, i * cell + cell):
-                total += column[j]
-            out[i] = total
 
 
 @numba.njit(cache=True, nogil=True)
