@@ -527,8 +527,8 @@ class MultiObjectTracker:
 
     def _take_id(self, new: Track, axis: int, lost: list[Track]) -> bool:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
-        fit, only one that fits clearly better) and on the other axis, cut as it may be, is not much
-        smaller than its own; that one is removed. Whether it took an id."""
+        fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
+        may cut on `new`, is not much smaller than `new`'s; that one is removed. Whether it took an id."""
         p = self.params
         cut = new.box[3 - axis]
         misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)

@@ -97,10 +97,10 @@ def box_sums(counts, window):  # noqa: ANN001, ANN201 - numba kernel
 
 @numba.njit(cache=True, nogil=True)
 def close(mask, kernel):  # noqa: ANN001, ANN201 - numba kernel
-    """Morphological closing (dilation, outside empty, then erosion, outside full) of a 0/1 mask by
-    a symmetric 0/1 kernel, on a copy padded by the kernel's reach, so no step tests a border. Each
-    pass ORs (ANDs) whole rows shifted by one kernel offset at a time: loops the compiler runs on
-    many cells at once."""
+    """Morphological closing (dilation, outside empty, then erosion, outside full) of a mask of 0s
+    and 1s (the passes OR and AND its values) by a symmetric 0/1 kernel, on a copy padded by the
+    kernel's reach, so no step tests a border. Each pass ORs (ANDs) whole rows shifted by one kernel
+    offset at a time: loops the compiler runs on many cells at once."""
     rows, cols = mask.shape
     ry, rx = kernel.shape[0] // 2, kernel.shape[1] // 2
     dys, dxs = np.nonzero(kernel)
