@@ -151,11 +151,13 @@ class TrafficMonitor:
             k = self.keys.get(key)
             if k is None:
                 k = self.keys[key] = {"type": body.get("type"), "messages": 0, "events": 0, "seq_gaps": 0,
-                                      "first_s": time.monotonic() - self.t0, "last_seq": None,
+                                      "first_s": time.monotonic() - self.t0, "last_seq": None, "max_gap_s": 0.0,
                                       "per_second": defaultdict(int)}
+            now_s = time.monotonic() - self.t0
+            k["max_gap_s"] = max(k["max_gap_s"], now_s - k.get("last_s", now_s))
             k["messages"] += 1
             k["events"] += count
-            k["last_s"] = time.monotonic() - self.t0
+            k["last_s"] = now_s
             if k["last_seq"] is not None and seq > k["last_seq"] + 1:
                 k["seq_gaps"] += seq - k["last_seq"] - 1
             k["last_seq"] = seq
@@ -175,6 +177,7 @@ class TrafficMonitor:
                     "type": k["type"], "messages": k["messages"], "events": k["events"],
                     "msg_rate": k["messages"] / span, "event_rate": k["events"] / span,
                     "msg_rate_min": min(full, default=None), "msg_rate_max": max(full, default=None),
+                    "max_gap_s": round(k["max_gap_s"], 3),
                     "dropped": k["seq_gaps"], "subscriber_dropped": 0, "subscriber_malformed": 0,
                 }
             subs = []

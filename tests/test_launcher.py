@@ -13,6 +13,8 @@ import psutil
 import zenoh
 import pytest
 
+from services.launcher import SILENT_S
+
 from tests.conftest import ROOT, etam_argv, free_port, wait_for
 
 
@@ -176,7 +178,8 @@ def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig
     assert proc.returncode == 0, err
     report = json.loads(report_path.read_text())
     assert report["services"]["camera"]["restarts"] == 0
-    assert report["keys"][f"etam/{rig}/camera/cam0/stats"]["messages"] >= 7  # Stats kept flowing
+    stats = report["keys"][f"etam/{rig}/camera/cam0/stats"]
+    assert stats["messages"] >= 3 and stats["max_gap_s"] < SILENT_S / 2  # Stats kept flowing, once started
     assert report["keys"][f"etam/{rig}/camera/cam0/truth/pose"]["messages"] > 5
     assert "plays slower than real time" in err
 
