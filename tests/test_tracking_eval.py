@@ -108,8 +108,9 @@ def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     from services.tracker.objects.tracker import METHODS
 
     rows = tracking.run(quick=True)
-    ceilings = ["association on truth boxes", "association on merged truth boxes"]
-    assert [r["seed"] for r in rows] == [11, 12] + ["mean"] * (len(METHODS) + 3)
+    ceilings = ["association on truth boxes", "association on merged truth boxes",
+                "default, blobs placed on truth boxes"]
+    assert [r["seed"] for r in rows] == [11, 12] + ["mean"] * (len(METHODS) + 4)
     assert [r["method"] for r in rows[2:]] == [*METHODS, *ceilings, "dv MeanShiftTracker"]
     mean = rows[2]
     assert mean["op50"] == pytest.approx((rows[0]["op50"] + rows[1]["op50"]) / 2)
@@ -119,6 +120,17 @@ def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     on_truth = {r["method"]: r for r in rows}
     # fed the truth, association finds nearly every object; merged, it meets what a blob detector meets
     assert on_truth[ceilings[0]]["op50"] > 0.95 and on_truth[ceilings[1]]["op50"] < on_truth[ceilings[0]]["op50"]
+
+
+def test_the_placement_ceiling_puts_tracks_sharing_a_blob_on_the_truth_boxes_they_overlap() -> None:
+    from benchmarks.tracking import TruthPlacement
+
+    truth = np.float64([[0, 1, 10, 10, 20, 20], [0, 2, 40, 10, 20, 20], [50_000, 1, 12, 10, 20, 20]])
+    tracker = TruthPlacement(100, 60, truth)
+    tracker.generate(40_000)  # the truth of time 0 holds until 50 ms
+    preds = np.float32([[38, 12, 20, 20], [14, 8, 20, 20], [70, 40, 10, 10]])
+    placed = tracker._layout(np.zeros((60, 100), np.float32), preds, preds[:, 2:])
+    np.testing.assert_array_equal(placed, [[40, 10, 20, 20], [10, 10, 20, 20], [70, 40, 10, 10]])
 
 
 def test_bench_tracker_speed_rows_print_as_a_table() -> None:

@@ -117,7 +117,7 @@ class ObjectTracker:
         boxes = self._detect(image, t_us)
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
-            layout=lambda preds, sizes: fit_layout(image, preds, self.params.layout, sizes))
+            layout=lambda preds, sizes: self._layout(image, preds, sizes))
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
@@ -127,6 +127,10 @@ class ObjectTracker:
             vels=np.array([tr.vel for tr in tracks], np.float32).reshape(-1, 2),
             states=np.array([tr.state for tr in tracks], np.uint8),
         )
+
+    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+        """Where the tracks sharing one blob are (their predicted boxes and own sizes in, boxes out)."""
+        return fit_layout(image, boxes, self.params.layout, sizes)
 
     def _accept_sampled(self) -> None:
         """This update's events, thinned to key events (each weighted by the events of its cell)
