@@ -38,7 +38,7 @@ from services.camera.simulator import SimParams
 from services.tracker.offline import CSV_HEADER, eval_tracking, track
 from services.tracker.evaluation import split_frames
 from services.tracker.objects.association import intersection, iou, union
-from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, TrackSet, method_params, warm_up
+from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params, warm_up
 
 FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute")
 DV_BANDWIDTH_PX = 20
@@ -87,23 +87,18 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
 
 
 class _WithTruth(ObjectTracker):
-    """The default tracker that knows the simulator's truth boxes (N x 6 rows) at each update."""
+    """The default tracker that knows the simulator's truth boxes (N x 6 rows) at each time."""
 
     def __init__(self, width: int, height: int, truth: np.ndarray) -> None:
         super().__init__(width, height, method_params(DEFAULT_METHOD))
         self.times, frames = split_frames(truth)
         self.truth_boxes = [rows[:, 2:6].astype(np.float32) for rows in frames]
-        self.t_us = 0
 
-    def generate(self, t_us: int) -> TrackSet:
-        self.t_us = t_us
-        return super().generate(t_us)
-
-    def _truth_now(self) -> np.ndarray:
-        """The boxes of the latest truth time at or before this update."""
+    def _truth_at(self, t_us: int) -> np.ndarray:
+        """The boxes of the latest truth time at or before `t_us`."""
         if not len(self.times):
             return np.zeros((0, 4), np.float32)
-        return self.truth_boxes[max(int(np.searchsorted(self.times, self.t_us, side="right")) - 1, 0)]
+        return self.truth_boxes[max(int(np.searchsorted(self.times, t_us, side="right")) - 1, 0)]
 
 
 class TruthBoxes(_WithTruth):
@@ -116,7 +111,7 @@ class TruthBoxes(_WithTruth):
         self.merged = merged
 
     def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
-        boxes = self._truth_now()
+        boxes = self._truth_at(t_us)
         return _merge_overlapping(boxes) if self.merged else boxes
 
 
@@ -124,9 +119,13 @@ class TruthPlacement(_WithTruth):
     """The default tracker whose tracks sharing a blob are placed on the truth boxes (of every object in
     the image, hidden ones too) their predictions overlap most, one to one, instead of by its layout."""
 
+    def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
+        self.t_us = t_us  # the layout of this update places on the truth of this time
+        return super()._detect(image, t_us)
+
     def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
         placed = np.asarray(boxes, np.float32).reshape(-1, 4).copy()
-        truth = self._truth_now()
+        truth = self._truth_at(self.t_us)
         if len(truth) and len(placed):
             overlap = iou(placed, truth)
             for i, j in zip(*linear_sum_assignment(-overlap), strict=True):

@@ -148,13 +148,13 @@ class TrafficMonitor:
             return
         second = int(time.monotonic() - self.t0)
         with self._lock:
+            now_s = time.monotonic() - self.t0
             k = self.keys.get(key)
             if k is None:
                 k = self.keys[key] = {"type": body.get("type"), "messages": 0, "events": 0, "seq_gaps": 0,
-                                      "first_s": time.monotonic() - self.t0, "last_seq": None, "max_gap_s": 0.0,
+                                      "first_s": now_s, "last_s": now_s, "last_seq": None, "max_gap_s": 0.0,
                                       "per_second": defaultdict(int)}
-            now_s = time.monotonic() - self.t0
-            k["max_gap_s"] = max(k["max_gap_s"], now_s - k.get("last_s", now_s))
+            k["max_gap_s"] = max(k["max_gap_s"], now_s - k["last_s"])
             k["messages"] += 1
             k["events"] += count
             k["last_s"] = now_s

@@ -441,8 +441,9 @@ class MultiObjectTracker:
         tr.score = min(1.0, 0.8 * tr.score + 0.2)
         if tr.hits >= p.confirm_hits:
             if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
-                found = self._reidentify(tr) or self._out_from_behind(tr)
-                tr.entering = (not found and bool(self._sides(tr.box) or self._occluders(tr))
+                nearer = self._occluders(tr)
+                found = self._reidentify(tr) or self._out_from_behind(tr, nearer)
+                tr.entering = (not found and bool(self._sides(tr.box) or nearer)
                                and t_us - tr.first_seen_us < p.young_us)
             tr.state = TRACKED
 
@@ -502,12 +503,12 @@ class MultiObjectTracker:
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
         return self._take_id(new, axis, [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides])
 
-    def _out_from_behind(self, new: Track) -> bool:
+    def _out_from_behind(self, new: Track, nearer: list[Track]) -> bool:
         """The same for a target coming out from behind a nearer one: a new track beside a confirmed
         track's box takes the id of a track unseen since before it appeared (hidden, or lost there)
         whose box overlaps that box (where it coasted while hidden is a guess), if its size fits on the
-        axis the nearer one's edge does not cut. Whether it took an id."""
-        for near in self._occluders(new):
+        axis the nearer one's edge does not cut (`nearer`: its `_occluders`). Whether it took an id."""
+        for near in nearer:
             (nx, ny), (ox, oy) = _centre(new.box), _centre(near.box)
             # beside its edge (apart more on x than on y, for their sizes), its width is cut: its height is whole
             axis = 1 if abs(nx - ox) / (near.box[2] + new.box[2]) > abs(ny - oy) / (near.box[3] + new.box[3]) else 0
