@@ -132,6 +132,15 @@ def _cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _output(path: str) -> Path:
+    """A file a command will write, checked before the work: a missing folder is named at once, not
+    after minutes of tracking or simulating."""
+    out = Path(path)
+    if not out.parent.is_dir():
+        raise config.ConfigError(f"{out}: folder {out.parent} does not exist")
+    return out
+
+
 def _open_session(args: argparse.Namespace):  # noqa: ANN202 - zenoh.Session
     import zenoh
 
@@ -174,7 +183,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from services.camera.simulator import SimParams
 
     params = SimParams.parse(args.sim_param or [])
-    summary = simulate(args.scene, Path(args.out), args.duration, args.seed, progress=not args.json, params=params)
+    summary = simulate(args.scene, _output(args.out), args.duration, args.seed, progress=not args.json, params=params)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
           f"({args.duration} s, seed {args.seed}), {summary['truth_boxes']} truth boxes and "
           f"{summary['truth_poses']} truth poses to {args.out}")
@@ -198,11 +207,12 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     if not Path(args.input).exists():
         raise config.ConfigError(f"{args.input}: no such file")
-    summary = track(Path(args.input), Path(args.out), method_params(args.method), progress=not args.json)
-    if args.snapshots:
+    out, shots = _output(args.out), args.snapshots and _output(args.snapshots)
+    summary = track(Path(args.input), out, method_params(args.method), progress=not args.json)
+    if shots:
         from services.tracker.offline import read_tracks, snapshots
 
-        snapshots(Path(args.input), read_tracks(Path(args.out)), Path(args.snapshots))
+        snapshots(Path(args.input), read_tracks(out), shots)
         summary["snapshots"] = args.snapshots
     print(json.dumps(summary) if args.json else f"wrote {summary['boxes']} boxes of {summary['track_ids']} tracks "
           f"({summary['updates']} updates, {summary['events']} events) to {args.out}")
@@ -224,7 +234,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_convert(args: argparse.Namespace) -> int:
     from services.camera.offline import convert
 
-    summary = convert(Path(args.input), Path(args.output), progress=not args.json)
+    summary = convert(Path(args.input), _output(args.output), progress=not args.json)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of {args.input} "
           f"({summary['input_format']}) to {args.output}")
     return 0
@@ -233,9 +243,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 def _cmd_record(args: argparse.Namespace) -> int:
     from services.camera.recorder import RecordService
 
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise config.ConfigError(f"{out}: folder {out.parent} does not exist")
+    out = _output(args.out)
     return RecordService(_service_options(args, "recorder"), out, args.keys).run()
 
 

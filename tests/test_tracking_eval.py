@@ -101,6 +101,13 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
                          text=True, timeout=60)
     assert bad.returncode == 2 and "not a tracks CSV" in bad.stderr and "Traceback" not in bad.stderr
 
+    written = csv.stat().st_mtime_ns
+    for out in (["--out", str(tmp_path / "gone" / "t.csv")], ["--out", str(csv), "--snapshots", "/nonexistent/s.png"]):
+        bad = subprocess.run(etam_argv("track", str(h5), *out), capture_output=True, text=True, timeout=60)
+        # a missing output folder is named before any tracking: no progress bar, the tracks above untouched
+        assert bad.returncode == 2 and "does not exist" in bad.stderr and "Traceback" not in bad.stderr
+        assert "o.h5:" not in bad.stderr and csv.stat().st_mtime_ns == written
+
 
 def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     from benchmarks import tracking
