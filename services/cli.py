@@ -207,7 +207,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     if not Path(args.input).exists():
         raise config.ConfigError(f"{args.input}: no such file")
-    out, shots = _output(args.out), args.snapshots and _output(args.snapshots)
+    out, shots = _output(args.out), _output(args.snapshots) if args.snapshots else None
     summary = track(Path(args.input), out, method_params(args.method), progress=not args.json)
     if shots:
         from services.tracker.offline import read_tracks, snapshots
