@@ -146,9 +146,8 @@ class TrafficMonitor:
             with self._lock:
                 self.malformed += 1
             return
-        second = int(time.monotonic() - self.t0)
         with self._lock:
-            now_s = time.monotonic() - self.t0
+            now_s = time.monotonic() - self.t0  # read under the lock: a key's times never go backwards
             k = self.keys.get(key)
             if k is None:
                 k = self.keys[key] = {"type": body.get("type"), "messages": 0, "events": 0, "seq_gaps": 0,
@@ -161,7 +160,7 @@ class TrafficMonitor:
             if k["last_seq"] is not None and seq > k["last_seq"] + 1:
                 k["seq_gaps"] += seq - k["last_seq"] - 1
             k["last_seq"] = seq
-            k["per_second"][second] += 1
+            k["per_second"][int(now_s)] += 1
             if stats is not None:
                 self.stats[f"{stats.service}/{stats.name}"] = stats
                 self.last_stats[stats.service] = time.monotonic()
