@@ -11,7 +11,7 @@ from services.camera.simulator import EventSimulator, ObjectsScene
 from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
-from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, iou
+from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, Track, iou
 from services.tracker.objects.layout import LayoutParams, fit_layout
 
 
@@ -479,6 +479,21 @@ def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> 
     by_id = {t.ident: t for t in tracks}
     assert sorted(by_id) == [1, 2] and by_id[2].box[0] == pytest.approx(40 + 3 * 30 - 3 * 29, abs=3)
     assert by_id[1].box == pytest.approx((60, 100, 100, 80), abs=1)
+
+
+def test_a_track_whose_box_overlaps_two_detections_takes_the_one_it_overlaps_most_as_its_own() -> None:
+    """A small target leaving a big still one's box, its track's box still a little bigger than it: its
+    own detection is the one it overlaps most, not the first it overlaps by half (the big one's), so the
+    two do not share the big detection while a new track starts on the small one's."""
+    mot = MultiObjectTracker(width=346, height=260)
+    mot.tracks = [Track(1, (176, 86, 81, 56), 0, hits=10, state=TRACKED),
+                  Track(2, (201, 93, 65, 49), 0, hits=10, state=TRACKED)]
+    small = (209, 96, 55, 45)
+    tracks = mot.update(10_000, np.array([[176, 86, 81, 56], small], np.float32))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 2], [(t.ident, t.box) for t in tracks]
+    assert by_id[1].box == pytest.approx((176, 86, 81, 56), abs=1)
+    assert iou(np.float32([by_id[2].box]), np.float32([small]))[0, 0] > 0.8, by_id[2].box
 
 
 def test_a_target_gone_behind_two_nearer_ones_coasts_at_its_velocity() -> None:

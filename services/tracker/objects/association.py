@@ -226,9 +226,9 @@ class MultiObjectTracker:
         # tracks are one target seen in pieces before: merge those, place the rest
         shared: dict[int, list[int]] = {}
         whole: dict[int, int] = {}
-        # a track with a detection of its own (a small target seen inside a big one's) shares no other, unless
-        # the two are about the same (two tracks on one target, each with a box of it)
-        own_det = [next((b for b, o in zip(dets, row, strict=True) if o >= 0.5), None) for row in ious]
+        # a track with a detection of its own (the one it overlaps most, by half or more: a small target seen inside
+        # a big one's) shares no other, unless the two are about the same (two tracks on one target, each with a box)
+        own_det = [dets[row.index(best)] if row and (best := max(row)) >= 0.5 else None for row in ious]
         for di, det in enumerate(dets):
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
                       and (own_det[ti] is None or _iou(own_det[ti], det) >= 0.5)]
