@@ -209,7 +209,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         raise config.ConfigError(f"{args.input}: no such file")
     out, shots = _output(args.out), _output(args.snapshots) if args.snapshots else None
     summary = track(Path(args.input), out, method_params(args.method), progress=not args.json)
-    if shots:
+    if shots is not None:
         from services.tracker.offline import read_tracks, snapshots
 
         snapshots(Path(args.input), read_tracks(out), shots)
@@ -243,8 +243,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 def _cmd_record(args: argparse.Namespace) -> int:
     from services.camera.recorder import RecordService
 
-    out = _output(args.out)
-    return RecordService(_service_options(args, "recorder"), out, args.keys).run()
+    return RecordService(_service_options(args, "recorder"), _output(args.out), args.keys).run()
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
