@@ -160,7 +160,7 @@ def _cmd_echo(args: argparse.Namespace) -> int:
     from services.introspect import echo
 
     with _open_session(args) as session:
-        n = echo(session, args.keyexpr, sys.stdout, args.count, args.timeout)
+        n = echo(session, args.keyexpr, sys.stdout, args.count, args.timeout, args.full)
     if args.count is not None and n < args.count:
         print(f"etam echo: got {n} of {args.count} messages on {args.keyexpr} in {args.timeout} s", file=sys.stderr)
         return 1
@@ -338,6 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("keyexpr", help="e.g. 'etam/*/tracker/objects/tracks'")
     p.add_argument("--count", type=int, help="exit after N messages")
     p.add_argument("--timeout", type=float, help="exit after S seconds")
+    p.add_argument("--full", action="store_true", help="print arrays in full (default: up to 8 values, then a summary)")
     p.set_defaults(func=_cmd_echo)
 
     p = sub.add_parser("hz", help="print message and event rates on a key expression")

@@ -75,7 +75,8 @@ def format_services(services: list[dict[str, Any]]) -> str:
 
 def echo(session: zenoh.Session, keyexpr: str, out: TextIO, count: int | None = None,
          timeout_s: float | None = None, full: bool = False) -> int:
-    """Print each message on `keyexpr` as one JSON line; return how many were printed."""
+    """Print each message on `keyexpr` as one JSON line (arrays in full when `full`); return how many
+    were printed."""
     printed = 0
     done = threading.Event()
     lock = threading.Lock()
@@ -84,7 +85,7 @@ def echo(session: zenoh.Session, keyexpr: str, out: TextIO, count: int | None = 
         nonlocal printed
         try:
             msg = decode(sample.payload.to_bytes())
-            body: dict[str, Any] = msg.to_dict()
+            body: dict[str, Any] = msg.to_dict(full)
         except MessageError as exc:
             body = {"error": str(exc)}
         with lock:

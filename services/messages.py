@@ -222,20 +222,23 @@ class Message:
     def check(self) -> None:
         """Cross-field consistency, raising MessageError; overridden where fields relate."""
 
-    def to_dict(self) -> dict[str, Any]:
-        """A JSON-friendly summary (arrays up to 8 items shown in full, longer ones summarised)."""
+    def to_dict(self, full: bool = False) -> dict[str, Any]:
+        """A JSON-friendly view: arrays up to 8 items (all of them when `full`) shown as lists, longer
+        ones summarised so that an event packet stays one readable line."""
         out: dict[str, Any] = {"type": self.TYPE, "v": self.VERSION}
         for f in dataclasses.fields(self):
-            out[f.name] = _summarise(getattr(self, f.name))
+            out[f.name] = _summarise(getattr(self, f.name), full)
         return out
 
 
-def _summarise(value: Any) -> Any:
+def _summarise(value: Any, full: bool = False) -> Any:
     if isinstance(value, np.ndarray):
         if value.dtype.names:
+            if full:
+                return {n: value[n].tolist() for n in value.dtype.names}
             head = {n: value[n][:8].tolist() for n in value.dtype.names}
             return {"len": len(value), "head": head}
-        if value.size <= 8:
+        if full or value.size <= 8:
             return value.tolist()
         return {"shape": list(value.shape), "dtype": value.dtype.str, "head": value.reshape(-1)[:8].tolist()}
     if isinstance(value, (bytes, bytearray, memoryview)):

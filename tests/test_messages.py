@@ -208,3 +208,19 @@ def test_malloc_tuning_applies_on_glibc() -> None:
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         pytest.skip("mallopt is glibc's")
     assert tune_malloc()
+
+
+def test_json_view_summarises_long_arrays_unless_asked_for_all() -> None:
+    n = 4  # 12 coordinates: over the 8 shown in a summary
+    msg = m.Tracks(seq=1, stamp=2, t=3, id=np.arange(n, dtype="<i4"), box=np.ones((n, 4), "<f4"),
+                   score=np.ones(n, "<f4"), vel=np.zeros((n, 2), "<f4"), state=np.ones(n, "|u1"),
+                   xyz=np.arange(3 * n, dtype="<f4").reshape(n, 3))
+    short = msg.to_dict()
+    assert short["id"] == [0, 1, 2, 3] and short["xyz"]["shape"] == [4, 3] and len(short["xyz"]["head"]) == 8
+    full = msg.to_dict(full=True)
+    assert full["xyz"] == msg.xyz.tolist() and full["box"] == msg.box.tolist()
+    ev = np.zeros(20, EVENT_DTYPE)
+    ev["x"] = np.arange(20)
+    packet = m.EventPacket(seq=1, stamp=2, width=64, height=48, events=ev)
+    assert packet.to_dict()["events"]["len"] == 20 and len(packet.to_dict()["events"]["head"]["x"]) == 8
+    assert packet.to_dict(full=True)["events"]["x"] == list(range(20))

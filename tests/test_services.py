@@ -56,18 +56,18 @@ def test_camera_tracker_and_subscriber_processes(router: str, rig: str) -> None:
     with spawn("camera", *common), spawn("tracker", "--object-size", "0.5", *common):
         echo = subprocess.run(
             etam_argv("echo", f"etam/{rig}/tracker/objects/tracks", "--count", "200", "--timeout", "40",
-                      "--connect", router),
+                      "--full", "--connect", router),
             capture_output=True, text=True, timeout=60,
         )
     assert echo.returncode == 0, echo.stderr
     lines = [json.loads(line) for line in echo.stdout.splitlines()]
     assert len(lines) == 200 and all(line["type"] == "Tracks" for line in lines)
     assert all(line["key"] == f"etam/{rig}/tracker/objects/tracks" for line in lines)
-    assert any(1 in (line["state"] if isinstance(line["state"], list) else []) for line in lines[10:])
+    assert any(1 in line["state"] for line in lines[10:])
     stamps = [line["t"] for line in lines]
     assert stamps == sorted(stamps)
     # a known width gives every track a 3D position in front of the camera
-    placed = [xyz[2] for line in lines[10:] if line.get("xyz")
+    placed = [xyz[2] for line in lines[10:] if line["xyz"] is not None
               for xyz, state in zip(line["xyz"], line["state"], strict=True)
               if state == 1 and isinstance(xyz[2], float)]
     assert placed and all(z > 0 for z in placed) and 0.5 < float(np.median(placed)) < 20
