@@ -360,6 +360,16 @@ def test_layout_places_boxes_of_known_size_on_a_merged_blob() -> None:
     np.testing.assert_allclose(fit_layout(_blob_image(truth[:1]), inner, LayoutParams())[1], inner[1])
 
 
+def test_layout_lets_a_box_go_on_out_of_the_image_with_its_target() -> None:
+    """Two targets in one blob at the left border, one of them half out of the image: its box stays
+    where its prediction puts it, across the border, instead of being pushed in onto the other."""
+    truth = [[0, 80, 36, 40], [5, 115, 40, 40]]  # the first is 40 wide, 4 px of it out of view
+    img = _blob_image(truth)
+    pred = np.float32([[-4, 80, 40, 40], [5, 115, 40, 40]])
+    placed = fit_layout(img, pred, LayoutParams(resize_px=0))
+    np.testing.assert_allclose(placed, pred, atol=1)
+
+
 def test_layout_mends_a_wrong_size_slowly_and_keeps_right_ones() -> None:
     truth = [[100, 80, 40, 50], [138, 80, 40, 50]]  # side by side: one blob
     img = _blob_image(truth)
@@ -494,6 +504,23 @@ def test_a_track_whose_box_overlaps_two_detections_takes_the_one_it_overlaps_mos
     assert sorted(by_id) == [1, 2], [(t.ident, t.box) for t in tracks]
     assert by_id[1].box == pytest.approx((176, 86, 81, 56), abs=1)
     assert iou(np.float32([by_id[2].box]), np.float32([small]))[0, 0] > 0.8, by_id[2].box
+
+
+def test_a_target_hidden_in_a_shared_blob_takes_the_detection_of_its_size_where_it_comes_out() -> None:
+    """A small target behind a big nearer one, both in the big one's detection, comes out at the far
+    side as a detection of its own near where it was predicted: its track takes it (it is neither a
+    fragment of the big one nor a new target)."""
+    mot = MultiObjectTracker(width=346, height=260)
+    hidden = Track(2, (134, 83, 32, 25), 0, vel=(110, -48), hits=10, state=TRACKED)
+    hidden.widths.append(32)
+    hidden.heights.append(25)
+    mot.tracks = [Track(1, (71, 34, 115, 119), 0, vel=(-40, -42), hits=10, state=TRACKED), hidden]
+    out = (153, 75, 32, 25)
+    tracks = mot.update(10_000, np.array([[72, 35, 103, 115], out], np.float32))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 2], [(t.ident, t.box) for t in tracks]
+    assert iou(np.float32([by_id[2].box]), np.float32([out]))[0, 0] > 0.8, by_id[2].box
+    assert iou(np.float32([by_id[1].box]), np.float32([[72, 35, 103, 115]]))[0, 0] > 0.8, by_id[1].box
 
 
 def test_a_target_gone_behind_two_nearer_ones_coasts_at_its_velocity() -> None:

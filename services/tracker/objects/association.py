@@ -16,8 +16,10 @@ knew it was lost. Here:
 - two tracks that share one detection (crossing targets; not one with a detection of its own, a
   small target seen inside a big one's box) keep their sizes instead of collapsing onto the merged
   blob (up to slow corrections towards the events), and a `layout` places them on its events (see
-  `layout.py`); one that stops there, told by the new events in the part of its box the others
-  leave, is held instead of laid onto the moving one's events;
+  `layout.py`); one hidden there takes a detection of its size apart from the blob near its
+  prediction (it comes out from behind the nearer one); one that stops there, told by the new
+  events in the part of its box the others leave, is held instead of laid onto the moving one's
+  events;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
   to be one target (they share a detection, move together and overlap) merge into the oldest, and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
@@ -238,9 +240,12 @@ class MultiObjectTracker:
                     shared[di] = members
                 elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
                     whole[members[0]] = di
-        in_shared = {ti for members in shared.values() for ti in members}
         live = [ok and tr.state != _GONE for ok, tr in zip(live, self.tracks, strict=True)]
-        assigned = self._match(pred, dets, ious, in_shared | set(whole), set(shared) | set(whole.values()))
+        emerged = self._emerging(shared, pred, dets, set(whole.values()))
+        in_shared = {ti for members in shared.values() for ti in members}
+        assigned = self._match(pred, dets, ious, in_shared | set(whole) | set(emerged),
+                               set(shared) | set(whole.values()) | set(emerged.values()))
+        assigned.update(emerged)
         used = set(assigned.values()) | set(shared) | set(whole.values())
         for ti, di in whole.items():
             self._place(self.tracks[ti], dets[di], t_us)
@@ -302,6 +307,30 @@ class MultiObjectTracker:
                 self.tracks.append(Track(self._next_id, det, t_us, first_seen_us=t_us, last_seen_us=t_us))
                 self._next_id += 1
         return list(self.tracks)
+
+    def _emerging(self, shared: dict[int, list[int]], pred: list[Box], dets: list[Box],
+                  taken: set[int]) -> dict[int, int]:
+        """Tracks hidden in a shared blob (others' boxes cover most of theirs) that a detection of their
+        size near their prediction, apart from that blob, shows coming out from behind: each takes it
+        and leaves the blob (which, left to one track, is matched as usual). Track -> detection."""
+        p = self.params
+        out: dict[int, int] = {}
+        for di_shared, members in list(shared.items()):
+            boxes = [pred[ti] for ti in members]
+            shares = [_alone(box, boxes[:k] + boxes[k + 1:])[1] for k, box in enumerate(boxes)]
+            for ti in self._covered(members, boxes, shares):
+                tr, a = self.tracks[ti], pred[ti]
+                size = max(a[2], a[3], 1.0)
+                fits = [(math.dist(_centre(a), _centre(b)) / size, di) for di, b in enumerate(dets)
+                        if di not in shared and di not in taken and di not in out.values()
+                        and all(abs(math.log(max(b[2 + ax], 1.0) / max(tr.usual_size(ax), 1.0)))
+                                < math.log(p.reid_size_ratio) for ax in (0, 1))]
+                if fits and (best := min(fits))[0] <= p.gate:
+                    out[ti] = best[1]
+                    members.remove(ti)
+            if len(members) < 2:
+                del shared[di_shared]
+        return out
 
     def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
         """Of tracks sharing one detection, fold each tentative one, each young one overlapping it (and

@@ -6,7 +6,8 @@ integer shifts near its prediction) to cover as many recent pixels as it can tha
 already explains, and as little empty image: a pixel gains `1 - density` if it fired recently and
 loses `density` if not. Pixels under another box count for nothing, so a target partly hidden
 behind a nearer one is placed by the part of it still in view, and one wholly inside another's box
-stays at its prediction, held there by a small pull.
+stays at its prediction, held there by a small pull. Beyond the image nothing fires, so a box
+whose target is leaving goes on out with it, instead of being held inside on the other's events.
 
 A size known from before the merge can be wrong (two targets that came in together, a box that
 held a trail), and a blob may last seconds; so each edge may also move a pixel a round, against a
@@ -48,13 +49,17 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
     sizes; one left where it started keeps its sub-pixel prediction."""
     h_img, w_img = image.shape
     margin = reach * rounds
-    x0 = max(int(np.floor(boxes[:, 0].min())) - margin, 0)
-    y0 = max(int(np.floor(boxes[:, 1].min())) - margin, 0)
-    x1 = min(int(np.ceil((boxes[:, 0] + boxes[:, 2]).max())) + margin, w_img)
-    y1 = min(int(np.ceil((boxes[:, 1] + boxes[:, 3]).max())) + margin, h_img)
+    x0 = int(np.floor(boxes[:, 0].min())) - margin
+    y0 = int(np.floor(boxes[:, 1].min())) - margin
+    x1 = int(np.ceil((boxes[:, 0] + boxes[:, 2]).max())) + margin
+    y1 = int(np.ceil((boxes[:, 1] + boxes[:, 3]).max())) + margin
     out = boxes.astype(np.float32)
-    if x1 <= x0 or y1 <= y0:
+    if min(x1, w_img) <= max(x0, 0) or min(y1, h_img) <= max(y0, 0):
         return out
+    # beyond the image nothing fires: a box may go on out of it, as its target does
+    region = np.zeros((y1 - y0, x1 - x0), np.float32)
+    ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, w_img), min(y1, h_img)
+    region[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = image[iy0:iy1, ix0:ix1]
     k_n = len(boxes)
     pred = np.empty((k_n, 2))
     pos = np.empty((k_n, 2), np.int64)
@@ -64,7 +69,7 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
         pos[k, 0], pos[k, 1] = round(boxes[k, 0]) - x0, round(boxes[k, 1]) - y0
         size[k, 0], size[k, 1] = max(round(boxes[k, 2]), 1), max(round(boxes[k, 3]), 1)
     start, was_size = pos.copy(), size.copy()
-    _fit(image[y0:y1, x0:x1], recent, density, pos, size, pred, reach, pull, rounds, np.maximum(own, 1.0),
+    _fit(region, recent, density, pos, size, pred, reach, pull, rounds, np.maximum(own, 1.0),
          resize, size_pull)
     for k in range(k_n):
         resized = size[k, 0] != was_size[k, 0] or size[k, 1] != was_size[k, 1]
