@@ -315,18 +315,23 @@ class MultiObjectTracker:
         and leaves the blob (which, left to one track, is matched as usual). Track -> detection."""
         p = self.params
         out: dict[int, int] = {}
-        for di_shared, members in list(shared.items()):
+        free = [di for di in range(len(dets)) if di not in shared and di not in taken]
+        for di_shared, members in list(shared.items()) if free else []:
             boxes = [pred[ti] for ti in members]
-            shares = [_alone(box, boxes[:k] + boxes[k + 1:])[1] for k, box in enumerate(boxes)]
-            for ti in self._covered(members, boxes, shares):
+            biggest = sorted(range(len(boxes)), key=lambda k: _area(boxes[k]))[-1]  # as `_covered` has it
+            for k, ti in enumerate(list(members)):
                 tr, a = self.tracks[ti], pred[ti]
                 size = max(a[2], a[3], 1.0)
-                fits = [(math.dist(_centre(a), _centre(b)) / size, di) for di, b in enumerate(dets)
-                        if di not in shared and di not in taken and di not in out.values()
-                        and all(abs(math.log(max(b[2 + ax], 1.0) / max(tr.usual_size(ax), 1.0)))
-                                < math.log(p.reid_size_ratio) for ax in (0, 1))]
-                if fits and (best := min(fits))[0] <= p.gate:
-                    out[ti] = best[1]
+                near = [(d, di) for di in free if di not in out.values()
+                        and (d := math.dist(_centre(a), _centre(dets[di])) / size) <= p.gate]
+                # hidden, as `_covered` tells
+                if not near or k == biggest or _alone(a, boxes[:k] + boxes[k + 1:])[1] >= p.hidden_share:
+                    continue
+                ratio = p.reid_size_ratio
+                fits = [(d, di) for d, di in near if all(  # its size on both axes
+                    1 / ratio < max(dets[di][2 + ax], 1.0) / max(tr.usual_size(ax), 1.0) < ratio for ax in (0, 1))]
+                if fits:
+                    out[ti] = min(fits)[1]
                     members.remove(ti)
             if len(members) < 2:
                 del shared[di_shared]

@@ -54,12 +54,14 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
     x1 = int(np.ceil((boxes[:, 0] + boxes[:, 2]).max())) + margin
     y1 = int(np.ceil((boxes[:, 1] + boxes[:, 3]).max())) + margin
     out = boxes.astype(np.float32)
-    if min(x1, w_img) <= max(x0, 0) or min(y1, h_img) <= max(y0, 0):
-        return out
-    # beyond the image nothing fires: a box may go on out of it, as its target does
-    region = np.zeros((y1 - y0, x1 - x0), np.float32)
     ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, w_img), min(y1, h_img)
-    region[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = image[iy0:iy1, ix0:ix1]
+    if ix1 <= ix0 or iy1 <= iy0:
+        return out
+    if ix0 == x0 and iy0 == y0 and ix1 == x1 and iy1 == y1:
+        region = image[y0:y1, x0:x1]
+    else:  # beyond the image nothing fires: a box may go on out of it, as its target does
+        region = np.zeros((y1 - y0, x1 - x0), image.dtype)
+        region[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = image[iy0:iy1, ix0:ix1]
     k_n = len(boxes)
     pred = np.empty((k_n, 2))
     pos = np.empty((k_n, 2), np.int64)
