@@ -198,6 +198,11 @@ def _behind(box: Box, usual: Callable[[int], float], others: list[Box]) -> Box:
     return out[0], out[1], out[2], out[3]
 
 
+def _biggest(boxes: list[Box]) -> int:
+    """The index of the biggest box (the last of equal ones)."""
+    return sorted(range(len(boxes)), key=lambda k: _area(boxes[k]))[-1]
+
+
 def union(boxes: list[Box]) -> Box:
     """The smallest box holding all of `boxes`."""
     x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
@@ -318,14 +323,13 @@ class MultiObjectTracker:
         free = [di for di in range(len(dets)) if di not in shared and di not in taken]
         for di_shared, members in list(shared.items()) if free else []:
             boxes = [pred[ti] for ti in members]
-            biggest = sorted(range(len(boxes)), key=lambda k: _area(boxes[k]))[-1]  # as `_covered` has it
+            biggest = _biggest(boxes)
             for k, ti in enumerate(list(members)):
                 tr, a = self.tracks[ti], pred[ti]
                 size = max(a[2], a[3], 1.0)
                 near = [(d, di) for di in free if di not in out.values()
                         and (d := math.dist(_centre(a), _centre(dets[di])) / size) <= p.gate]
-                # hidden, as `_covered` tells
-                if not near or k == biggest or _alone(a, boxes[:k] + boxes[k + 1:])[1] >= p.hidden_share:
+                if not near or not self._hidden(k, biggest, _alone(a, boxes[:k] + boxes[k + 1:])[1]):
                     continue
                 ratio = p.reid_size_ratio
                 fits = [(d, di) for d, di in near if all(  # its size on both axes
@@ -409,8 +413,13 @@ class MultiObjectTracker:
         leave), those whose box the others' boxes mostly cover (all but the biggest): targets gone
         behind a nearer one. They are still placed, but count as unseen, so one that stays hidden is
         lost after `hold_us` instead of riding on the nearer one's events."""
-        by_area = sorted(range(len(members)), key=lambda k: _area(boxes[k]))
-        return {members[k] for k in by_area[:-1] if shares[k] < self.params.hidden_share}
+        biggest = _biggest(boxes)
+        return {ti for k, ti in enumerate(members) if self._hidden(k, biggest, shares[k])}
+
+    def _hidden(self, k: int, biggest: int, share: float) -> bool:
+        """Whether the `k`th of boxes sharing a blob is hidden behind the others: it is not the biggest
+        and the `share` of it they leave is small."""
+        return k != biggest and share < self.params.hidden_share
 
     def _stopped(self, tr: Track, new_events: float, share: float = 1.0) -> bool:
         """Whether its detection (or the `share` of its box no other track covers) has far fewer new
