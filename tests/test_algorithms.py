@@ -506,6 +506,19 @@ def test_a_track_whose_box_overlaps_two_detections_takes_the_one_it_overlaps_mos
     assert iou(np.float32([by_id[2].box]), np.float32([small]))[0, 0] > 0.8, by_id[2].box
 
 
+def test_of_two_still_tracks_found_one_the_one_that_fits_their_detection_goes_on() -> None:
+    """A target that went behind a still one is held inside its box; when the still one's detection
+    holds both, they are one target now, and the id going on is the still one's, whose box fits the
+    detection, not the older id of the hidden one (the target that will come out again)."""
+    mot = MultiObjectTracker(width=346, height=260)
+    mot.tracks = [Track(1, (24, 36, 54, 54), 0, hits=10, state=TRACKED),
+                  Track(2, (1, 36, 75, 81), 0, hits=10, state=TRACKED)]
+    det = (0, 25, 82, 92)
+    tracks = mot.update(10_000, np.array([det], np.float32))
+    assert [t.ident for t in tracks] == [2], [(t.ident, t.box) for t in tracks]
+    assert tracks[0].box == pytest.approx(det, abs=1)
+
+
 def test_a_target_hidden_in_a_shared_blob_takes_the_detection_of_its_size_where_it_comes_out() -> None:
     """A small target behind a big nearer one, both in the big one's detection, comes out at the far
     side as a detection of its own near where it was predicted: its track takes it (it is neither a

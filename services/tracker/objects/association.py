@@ -240,7 +240,7 @@ class MultiObjectTracker:
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
                       and (own_det[ti] is None or _iou(own_det[ti], det) >= 0.5)]
             if len(inside) >= 2:
-                members = self._merge_alike(t_us, inside, pred)
+                members = self._merge_alike(t_us, inside, pred, det)
                 if len(members) >= 2:
                     shared[di] = members
                 elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
@@ -341,11 +341,14 @@ class MultiObjectTracker:
                 del shared[di_shared]
         return out
 
-    def _merge_alike(self, t_us: int, members: list[int], pred: list[Box]) -> list[int]:
-        """Of tracks sharing one detection, fold each tentative one, each young one overlapping it (and
+    def _merge_alike(self, t_us: int, members: list[int], pred: list[Box], det: Box) -> list[int]:
+        """Of tracks sharing detection `det`, fold each tentative one, each young one overlapping it (and
         not clearly moving otherwise), or one moving with it and overlapping it, into the oldest of
         them (marked `_GONE`, removed after the update); the members left. Two still targets move
-        alike (not at all): they are folded only if one lies (almost) wholly inside the other."""
+        alike (not at all): they are folded only if one lies (almost) wholly inside the other. Of two
+        confirmed tracks found alike, the one whose box fits the detection better goes on: the target's
+        own track, not one that held a piece of it or was hidden behind it (traced on a target that
+        went behind a still one and was held there: its older id went on with the still one)."""
         p = self.params
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
@@ -362,8 +365,12 @@ class MultiObjectTracker:
                 # beside it (or crossing it), not a piece
                 young = t_us - tr.first_seen_us < p.young_us and inter > 0 and unlike <= p.young_unlike_px_s
                 if tr.state == TENTATIVE or young or alike:
-                    older.hits = max(older.hits, tr.hits)
-                    tr.state = _GONE
+                    older.hits = tr.hits = max(older.hits, tr.hits)
+                    if alike and tr.state == TRACKED and _iou(pred[i], det) > _iou(pred[k], det):
+                        older.state = _GONE
+                        keep[keep.index(k)] = i
+                    else:
+                        tr.state = _GONE
                     break
             else:
                 keep.append(i)
