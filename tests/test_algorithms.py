@@ -506,6 +506,24 @@ def test_a_track_whose_box_overlaps_two_detections_takes_the_one_it_overlaps_mos
     assert iou(np.float32([by_id[2].box]), np.float32([small]))[0, 0] > 0.8, by_id[2].box
 
 
+def test_a_still_track_is_not_taken_away_by_a_target_passing_over_it() -> None:
+    """A still target fires nothing, so nothing holds its track but its place: a moving target's detection
+    overlapping it a little is not its own (the track stays where it is), while one overlapping it much
+    is its target moving on again."""
+    still = (100, 100, 60, 50)
+    passing = (145, 105, 40, 40)  # IoU 0.15 with the still box
+    mot = MultiObjectTracker(width=346, height=260)
+    mot.tracks = [Track(7, still, 0, hits=10, state=TRACKED)]
+    tracks = mot.update(10_000, np.array([passing], np.float32))
+    by_id = {t.ident: t for t in tracks}
+    assert sorted(by_id) == [1, 7], [(t.ident, t.box) for t in tracks]  # the passing one is a new track
+    assert by_id[7].box == pytest.approx(still) and by_id[7].state == TRACKED
+    moving_on = (106, 100, 60, 50)
+    mot.tracks = [Track(7, still, 0, hits=10, state=TRACKED)]
+    tracks = mot.update(10_000, np.array([moving_on], np.float32))
+    assert [(t.ident, t.box[0]) for t in tracks] == [(7, pytest.approx(106, abs=1))]
+
+
 def test_of_two_still_tracks_found_one_the_one_that_fits_their_detection_goes_on() -> None:
     """A target that went behind a still one is held inside its box; when the still one's detection
     holds both, they are one target now, and the id going on is the still one's, whose box fits the
