@@ -38,6 +38,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "playback": playback.run,
     "tracker": tracking.speed,
     "tracking": tracking.run,
+    "tracking-held-out": tracking.held_out,
     "latency": latency.run,
     "simulator": _simulator,
 }
@@ -100,7 +101,7 @@ def format_results(results: dict) -> str:
                      f"{row['worst_events_per_s'] / 1e6:.1f}, best {row['best_events_per_s'] / 1e6:.1f}) over "
                      f"{row['plays']} plays of {row['file_events']} events; received {row['events']}, "
                      f"{row['seq_gaps']} sequence gaps")
-    for row in results.get("tracking", []):
+    for row in results.get("tracking", []) + results.get("tracking-held-out", []):
         lines.append(f"{row['stage']} seed {row['seed']!s:>4}: OP50 {row['op50']:.3f} OP75 {row['op75']:.3f} "
                      f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
                      f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f}"

@@ -129,6 +129,19 @@ def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     assert on_truth[ceilings[0]]["op50"] > 0.95 and on_truth[ceilings[1]]["op50"] < on_truth[ceilings[0]]["op50"]
 
 
+def test_bench_held_out_scores_the_default_method_on_seeds_kept_from_tuning() -> None:
+    from benchmarks import suite, tracking
+
+    from services.tracker.objects.tracker import DEFAULT_METHOD
+
+    assert not set(tracking.HELD_OUT_SEEDS) & {11, 12, 13, 14, 15}  # apart from the seeds the bench shows
+    rows = tracking.held_out(quick=True)
+    assert [(r["method"], r["seed"]) for r in rows] == [(DEFAULT_METHOD, "mean of 4 (71-74)")]
+    assert 0.3 < rows[0]["op50"] <= 1 and rows[0]["false_positives_per_s"] >= 0
+    text = suite.format_results({"machine": {}, "tracking-held-out": rows})
+    assert "tracking accuracy held out seed mean of 4 (71-74): OP50" in text
+
+
 def test_the_placement_ceiling_puts_tracks_sharing_a_blob_on_the_truth_boxes_they_overlap() -> None:
     from benchmarks.tracking import TruthPlacement
 
