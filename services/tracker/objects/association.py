@@ -22,7 +22,8 @@ knew it was lost. Here:
   events in the part of its box the others leave, is held instead of laid onto the moving one's
   events;
 - small detections inside a track's box are fragments of it, not new targets; tracks that turn out
-  to be one target (they share a detection, move together and overlap) merge into the oldest, and a track
+  to be one target (they share a detection, move together and overlap) merge into the oldest (or, of
+  two confirmed ones, the one whose box fits their detection), and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
   takes that detection whole;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
@@ -128,6 +129,11 @@ class Track:
     def usual_size(self, axis: int) -> float:
         """Its usual width (axis 0) or height (1): in full view if ever seen so, else its box's."""
         return self.full_size(axis) or self.box[2 + axis]
+
+    @property
+    def held(self) -> bool:
+        """A confirmed track held still (its target stopped)."""
+        return self.state == TRACKED and self.vel == (0.0, 0.0)
 
     def predict(self, t_us: int) -> Box:
         dt_s = (t_us - self.t_us) / 1e6
@@ -348,7 +354,7 @@ class MultiObjectTracker:
     def _merge_alike(self, t_us: int, members: list[int], pred: list[Box], det: Box) -> list[int]:
         """Of tracks sharing detection `det`, fold each tentative one, each young one overlapping it (and
         not clearly moving otherwise), or one moving with it and overlapping it, into the oldest of
-        them (marked `_GONE`, removed after the update); the members left. Two still targets move
+        them (marked `_GONE`, removed after the update; but see below); the members left. Two still targets move
         alike (not at all): they are folded only if one lies (almost) wholly inside the other. Of two
         confirmed tracks found alike, the one whose box fits the detection better goes on: the target's
         own track, not one that held a piece of it or was hidden behind it (traced on a target that
@@ -393,12 +399,14 @@ class MultiObjectTracker:
                 continue  # one that left the image is found again by `_reidentify`, on its size
             size = max(a[2], a[3], 1.0)
             gate = (p.redetect_gate if lost else p.gate) * size
+            # a target passing over a still one (which fires nothing to hold its track) is not it
+            least = p.still_min_iou if tr.held else 0.0
             for di, b in enumerate(dets):
                 if di in exclude_dets:
                     continue
                 overlap = ious[ti][di]
-                if tr.vel == (0.0, 0.0) and tr.state == TRACKED and overlap < p.still_min_iou:
-                    continue  # a target passing over a still one (which fires nothing to hold its track) is not it
+                if overlap < least:
+                    continue
                 if overlap >= p.min_iou:
                     cost = -overlap
                 else:
@@ -466,7 +474,7 @@ class MultiObjectTracker:
         cuts, share = alone
         if share < p.alone_share:  # too little of it left to tell: one already stopped stays so, unless
             # its box has more new events than it had itself while it moved
-            return tr.state == TRACKED and tr.vel == (0.0, 0.0) and new_in[k] < tr.rate
+            return tr.held and new_in[k] < tr.rate
         own = max(new_in[k] - sum(fresh(np.asarray(cuts, np.float32).reshape(-1, 4)).tolist()), 0.0)
         busiest = max(n / _area(b) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k)
         return own < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, own, share)
@@ -531,7 +539,7 @@ class MultiObjectTracker:
         """Whether a track at a border is a target that stopped there, held with its whole size in view
         (not one that left: that shrinks as it goes, and is held, if at all, with a sliver of it left)."""
         sides = self._sides(tr.box)
-        return tr.vel == (0.0, 0.0) and all(
+        return tr.held and all(
             not sides & cut or tr.box[2 + axis] >= WHOLE * tr.usual_size(axis)
             for axis, cut in ((0, CUT_X), (1, CUT_Y)))
 
