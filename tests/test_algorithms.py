@@ -479,6 +479,19 @@ def test_a_target_coming_out_from_behind_a_nearer_one_gets_its_id_back() -> None
         assert len(below) == 1 and (below[0].ident == 1) == same, [(t.ident, t.box) for t in tracks]
 
 
+def test_a_target_seen_again_away_from_the_borders_takes_its_id_back_by_its_size() -> None:
+    """A target does not come from nothing in the middle of the image: one unseen for a while (stopped,
+    hidden, or merged into a blob that left it behind) and seen again far from where it was takes its id
+    back if its size fits on both axes; one of another size, or one at a border, is a new target."""
+    for w, h, x, same in ((30, 24, 200, True), (30, 36, 200, False), (45, 24, 200, False), (30, 24, 0, False)):
+        mot = MultiObjectTracker(width=346, height=260)
+        _follow(mot, 0, [100, 100, 30, 24], [2, 0, 0, 0], 20)  # tracked for 200 ms, then unseen for 300 ms
+        for i in range(50, 60):
+            tracks = mot.update(i * 10_000, np.array([[x, 150, w, h]], np.float32))
+        there = [t for t in tracks if t.state == TRACKED and t.box[1] >= 140]
+        assert len(there) == 1 and (there[0].ident == 1) == same, (w, h, x, [(t.ident, t.box) for t in tracks])
+
+
 def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:
     """A small target crossing in front of a big one has a detection of its own inside the big one's:
     it follows that detection (here it turns back) rather than being placed as one of a shared blob."""

@@ -29,7 +29,9 @@ knew it was lost. Here:
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
   prediction before `forget_after_us`; a target coming out from behind a nearer one (a new track
   at the edge of that one's box) takes back the id of the track hidden there, by its size, as one
-  coming back in at a border does.
+  coming back in at a border does; and a new track anywhere away from the borders (targets do not
+  come from nothing there) takes the id of a track unseen since before it appeared whose size it
+  fits on both axes.
 
 An update sees a handful of tracks and detections, so the boxes are plain tuples of floats: numpy's
 per-call cost on arrays of three boxes was most of an update's time.
@@ -507,7 +509,7 @@ class MultiObjectTracker:
         if tr.hits >= p.confirm_hits:
             if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
                 nearer = self._occluders(tr)
-                found = self._reidentify(tr) or self._out_from_behind(tr, nearer)
+                found = self._reidentify(tr) or self._out_from_behind(tr, nearer) or self._seen_before(tr)
                 tr.entering = (not found and bool(self._sides(tr.box) or nearer)
                                and t_us - tr.first_seen_us < p.young_us)
             tr.state = TRACKED
@@ -584,6 +586,17 @@ class MultiObjectTracker:
                 return True
         return False
 
+    def _seen_before(self, new: Track) -> bool:
+        """A target does not come from nothing in the middle of the image: a new track confirmed away from
+        the borders (and from any track it could come out from behind, see `_out_from_behind`) is one seen
+        before, which stopped unseen, was hidden or was merged into a blob, if a track unseen since before
+        it appeared, and not at a border, fits its size on both axes. Whether it took an id."""
+        if self._sides(new.box):
+            return False
+        unseen = [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)
+                  and tr.last_seen_us < new.first_seen_us and not self._sides(tr.box)]
+        return self._take_id(new, None, unseen)
+
     def _occluders(self, new: Track) -> list[Track]:
         """Confirmed tracks whose box `new`'s touches: what it may come out from behind."""
         x, y, w, h = new.box
@@ -591,21 +604,30 @@ class MultiObjectTracker:
         grown = (x - m, y - m, w + 2 * m, h + 2 * m)
         return [tr for tr in self.tracks if tr is not new and tr.state == TRACKED and _overlap(grown, tr.box) > 0]
 
-    def _take_id(self, new: Track, axis: int, lost: list[Track]) -> bool:
+    def _take_id(self, new: Track, axis: int | None, lost: list[Track]) -> bool:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
         fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
-        may cut on `new`, is not much smaller than `new`'s; that one is removed. Whether it took an id."""
+        may cut on `new`, is not much smaller than `new`'s (`axis` None: whose sizes on both axes fit,
+        `new` seen whole); that one is removed. Whether it took an id."""
         p = self.params
-        cut = new.box[3 - axis]
-        misfit = sorted((abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0))), i)
-                        for i, tr in enumerate(lost) if (size := tr.full_size(axis))
-                        and cut <= p.reid_size_ratio * (tr.full_size(1 - axis) or math.inf))
-        misfit = [m for m in misfit if m[0] < math.log(p.reid_size_ratio)]
+        limit = math.log(p.reid_size_ratio)
+        misfit = sorted((m, i) for i, tr in enumerate(lost) if (m := self._misfit(new, tr, axis)) < limit)
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = lost[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE
             return True
         return False
+
+    def _misfit(self, new: Track, old: Track, axis: int | None) -> float:
+        """How far `new`'s size is from `old`'s usual one, as |log ratio|, on `axis` (the other, maybe cut
+        on `new`, only not much bigger than `old`'s), or the worse of both axes (`axis` None); inf where
+        `old` was never seen whole so."""
+        if axis is None:
+            return max(self._misfit(new, old, 0), self._misfit(new, old, 1))
+        size, other = old.full_size(axis), old.full_size(1 - axis)
+        if not size or new.box[3 - axis] > self.params.reid_size_ratio * (other or math.inf):
+            return math.inf
+        return abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0)))
 
     def reset(self) -> None:
         self.tracks = []
