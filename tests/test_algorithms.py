@@ -492,6 +492,27 @@ def test_a_target_seen_again_away_from_the_borders_takes_its_id_back_by_its_size
         assert len(there) == 1 and (there[0].ident == 1) == same, (w, h, x, [(t.ident, t.box) for t in tracks])
 
 
+def test_a_track_merged_into_another_takes_its_id_back_when_its_target_is_seen_apart_again() -> None:
+    """Two tracks moving together in one blob are merged into one, which may be wrong: two targets that
+    went together for a while. When one of that size shows again apart from the other, away from the
+    borders, it takes back the merged track's id."""
+    def known(ident: int, box: tuple[float, float, float, float]) -> Track:
+        tr = Track(ident, box, 0, vel=(100.0, 0.0), hits=10, state=TRACKED)
+        tr.widths.extend([box[2]] * 5)
+        tr.heights.extend([box[3]] * 5)
+        return tr
+
+    mot = MultiObjectTracker(width=346, height=260)
+    mot.tracks, mot._next_id = [known(1, (100, 100, 40, 30)), known(2, (120, 103, 30, 24))], 3
+    for i in range(1, 30):
+        boxes = [[100 + i, 100, 51, 30]] + ([[250, 180, 30, 24]] if i >= 15 else [])
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32))
+        if i == 1:
+            assert [t.ident for t in tracks] == [1]  # one target seen in two tracks, it seems
+    found = sorted((t.ident, t.state) for t in tracks)
+    assert found == [(1, TRACKED), (2, TRACKED)], [(t.ident, t.box) for t in tracks]
+
+
 def test_a_small_target_seen_inside_a_big_ones_box_keeps_its_own_detection() -> None:
     """A small target crossing in front of a big one has a detection of its own inside the big one's:
     it follows that detection (here it turns back) rather than being placed as one of a shared blob."""

@@ -31,7 +31,7 @@ knew it was lost. Here:
   at the edge of that one's box) takes back the id of the track hidden there, by its size, as one
   coming back in at a border does; and a new track anywhere away from the borders (targets do not
   come from nothing there) takes the id of a track unseen since before it appeared whose size it
-  fits on both axes.
+  fits on both axes, even one merged into another (it was a second target after all).
 
 An update sees a handful of tracks and detections, so the boxes are plain tuples of floats: numpy's
 per-call cost on arrays of three boxes was most of an update's time.
@@ -228,6 +228,7 @@ class MultiObjectTracker:
         self.params = params or AssociationParams()
         self.width, self.height = width, height
         self.tracks: list[Track] = []
+        self._folded: list[Track] = []  # merged into others, see `_fold`
         self._next_id = 1
 
     def update(self, t_us: int, boxes: np.ndarray, fresh: Counts | None = None,
@@ -379,14 +380,22 @@ class MultiObjectTracker:
                 if tr.state == TENTATIVE or young or alike:
                     older.hits = tr.hits = max(older.hits, tr.hits)
                     if alike and tr.state == TRACKED and _iou(pred[i], det) > _iou(pred[k], det):
-                        older.state = _GONE
+                        self._fold(older)
                         keep[keep.index(k)] = i
                     else:
-                        tr.state = _GONE
+                        self._fold(tr)
                     break
             else:
                 keep.append(i)
         return keep
+
+    def _fold(self, tr: Track) -> None:
+        """A track merged into another; a confirmed one is kept aside a while, as the second target it
+        may have been after all (see `_seen_before`)."""
+        if tr.state == TRACKED:
+            forget = self.params.forget_after_us
+            self._folded = [f for f in self._folded if tr.t_us - f.last_seen_us < forget] + [tr]
+        tr.state = _GONE
 
     def _match(self, pred: list[Box], dets: list[Box], ious: list[list[float]], exclude_tracks: set[int],
                exclude_dets: set[int]) -> dict[int, int]:
@@ -590,12 +599,18 @@ class MultiObjectTracker:
         """A target does not come from nothing in the middle of the image: a new track confirmed away from
         the borders (and from any track it could come out from behind, see `_out_from_behind`) is one seen
         before, which stopped unseen, was hidden or was merged into a blob, if a track unseen since before
-        it appeared, and not at a border, fits its size on both axes. Whether it took an id."""
+        it appeared (or merged into another, within `forget_after_us`), and not at a border, fits its size
+        on both axes. Whether it took an id."""
+        since = new.first_seen_us
         if self._sides(new.box):
             return False
-        unseen = [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)
-                  and tr.last_seen_us < new.first_seen_us and not self._sides(tr.box)]
-        return self._take_id(new, None, unseen)
+        folded = [tr for tr in self._folded if since - tr.last_seen_us < self.params.forget_after_us]
+        unseen = [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)] + folded
+        unseen = [tr for tr in unseen if tr.last_seen_us < since and not self._sides(tr.box)]
+        if not self._take_id(new, None, unseen):
+            return False
+        self._folded = [tr for tr in self._folded if tr.ident != new.ident]
+        return True
 
     def _occluders(self, new: Track) -> list[Track]:
         """Confirmed tracks whose box `new`'s touches: what it may come out from behind."""
@@ -630,4 +645,4 @@ class MultiObjectTracker:
         return abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0)))
 
     def reset(self) -> None:
-        self.tracks = []
+        self.tracks, self._folded = [], []
