@@ -490,6 +490,14 @@ def test_a_target_seen_again_away_from_the_borders_takes_its_id_back_by_its_size
             tracks = mot.update(i * 10_000, np.array([[x, 150, w, h]], np.float32))
         there = [t for t in tracks if t.state == TRACKED and t.box[1] >= 140]
         assert len(there) == 1 and (there[0].ident == 1) == same, (w, h, x, [(t.ident, t.box) for t in tracks])
+    mot = MultiObjectTracker(width=346, height=260)  # one that left through a border, back whole away from it
+    for i in range(30):
+        x0, x1 = max(60 - 4 * i, 0), 90 - 4 * i
+        mot.update(i * 10_000, np.array([[x0, 100, x1 - x0, 24]] if x1 > x0 + 2 else [], np.float32))
+    assert [t.state for t in mot.tracks] == [LOST]
+    for i in range(30, 40):
+        tracks = mot.update(i * 10_000, np.array([[8, 150, 30, 24]], np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
 
 
 def test_a_track_merged_into_another_takes_its_id_back_when_its_target_is_seen_apart_again() -> None:

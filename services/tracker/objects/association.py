@@ -599,14 +599,15 @@ class MultiObjectTracker:
         """A target does not come from nothing in the middle of the image: a new track confirmed away from
         the borders (and from any track it could come out from behind, see `_out_from_behind`) is one seen
         before, which stopped unseen, was hidden or was merged into a blob, if a track unseen since before
-        it appeared (or merged into another, within `forget_after_us`), and not at a border, fits its size
-        on both axes. Whether it took an id."""
+        it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
+        that left the image, which may come back in whole by the time its new track is confirmed, or
+        in a blob with another. Whether it took an id."""
         since = new.first_seen_us
         if self._sides(new.box):
             return False
         folded = [tr for tr in self._folded if since - tr.last_seen_us < self.params.forget_after_us]
         unseen = [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)] + folded
-        unseen = [tr for tr in unseen if tr.last_seen_us < since and not self._sides(tr.box)]
+        unseen = [tr for tr in unseen if tr.last_seen_us < since]
         if not self._take_id(new, None, unseen):
             return False
         self._folded = [tr for tr in self._folded if tr.ident != new.ident]
