@@ -597,7 +597,7 @@ class MultiObjectTracker:
 
     def _seen_before(self, new: Track) -> bool:
         """A target does not come from nothing in the middle of the image: a new track confirmed away from
-        the borders (and from any track it could come out from behind, see `_out_from_behind`) is one seen
+        the borders (and not found by `_out_from_behind`, which is tried first) is one seen
         before, which stopped unseen, was hidden or was merged into a blob, if a track unseen since before
         it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
         that left the image, which may come back in whole by the time its new track is confirmed, or
