@@ -584,13 +584,12 @@ class MultiObjectTracker:
         track's box takes the id of a track unseen since before it appeared (hidden, or lost there)
         whose box overlaps that box (where it coasted while hidden is a guess), if its size fits on the
         axis the nearer one's edge does not cut (`nearer`: its `_occluders`). Whether it took an id."""
+        unseen = [tr for tr in self._unseen_since(new) if not self._sides(tr.box)] if nearer else []
         for near in nearer:
             (nx, ny), (ox, oy) = _centre(new.box), _centre(near.box)
             # beside its edge (apart more on x than on y, for their sizes), its width is cut: its height is whole
             axis = 1 if abs(nx - ox) / (near.box[2] + new.box[2]) > abs(ny - oy) / (near.box[3] + new.box[3]) else 0
-            hidden = [tr for tr in self.tracks if tr is not new and tr is not near and tr.state in (TRACKED, LOST)
-                      and tr.last_seen_us < new.first_seen_us and not self._sides(tr.box)
-                      and _overlap(tr.box, near.box) > 0]
+            hidden = [tr for tr in unseen if tr is not near and _overlap(tr.box, near.box) > 0]
             if self._take_id(new, axis, hidden):
                 return True
         return False
@@ -602,16 +601,19 @@ class MultiObjectTracker:
         it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
         that left the image, which may come back in whole by the time its new track is confirmed, or
         in a blob with another. Whether it took an id."""
-        since = new.first_seen_us
         if self._sides(new.box):
             return False
-        folded = [tr for tr in self._folded if since - tr.last_seen_us < self.params.forget_after_us]
-        unseen = [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)] + folded
-        unseen = [tr for tr in unseen if tr.last_seen_us < since]
-        if not self._take_id(new, None, unseen):
+        since, forget = new.first_seen_us, self.params.forget_after_us
+        folded = [tr for tr in self._folded if tr.last_seen_us < since and since - tr.last_seen_us < forget]
+        if not self._take_id(new, None, self._unseen_since(new) + folded):
             return False
         self._folded = [tr for tr in self._folded if tr.ident != new.ident]
         return True
+
+    def _unseen_since(self, new: Track) -> list[Track]:
+        """The confirmed or lost tracks unseen since before `new` was first seen: whose target it may be."""
+        return [tr for tr in self.tracks if tr is not new and tr.state in (TRACKED, LOST)
+                and tr.last_seen_us < new.first_seen_us]
 
     def _occluders(self, new: Track) -> list[Track]:
         """Confirmed tracks whose box `new`'s touches: what it may come out from behind."""
