@@ -12,7 +12,7 @@ from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
 from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, Track, iou
-from services.tracker.objects.layout import LayoutParams, fit_layout
+from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
 
 
 def _events(ts: list[int]) -> np.ndarray:
@@ -636,6 +636,29 @@ def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # on its events, not where its speed says
     assert by_id[2].box[0] == pytest.approx(b_x, abs=2) and by_id[1].box[2] == pytest.approx(30, abs=3)
+
+
+def test_a_second_target_joining_a_tracks_blob_gets_a_track_of_its_own() -> None:
+    """A target that starts to move beside a tracked one, their events one blob, is a second target: the
+    tracked one keeps its size instead of growing onto both, and the other is tracked on its own."""
+    mot = MultiObjectTracker(width=346, height=260)
+    params = LayoutParams()
+    for i in range(45):  # from i = 20 a second target below the first's corner moves off to the right, 3x as fast
+        a = [40 + 2 * i, 100, 30, 30]
+        b = [a[0] + 10 + 4 * (i - 20), 120, 30, 30] if i >= 20 else None
+        img = _blob_image([a] + ([b] if b else []), seed=i)
+        apart = b is None or b[0] > a[0] + 36
+        boxes = [a] + ([b] if b else []) if apart else [[a[0], 100, b[0] + 30 - a[0], 50]]
+        tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
+                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, params, sizes),
+                            leftover=lambda det, placed, img=img: leftover(img, det, placed, params.recent))
+        if i == 26:  # still one blob, 64 x 50 px
+            first = next(t for t in tracks if t.ident == 1)
+            assert first.box[2] == pytest.approx(30, abs=3) and first.box[3] == pytest.approx(30, abs=3)
+            assert first.box[0] == pytest.approx(a[0], abs=3)
+            assert [t.state for t in tracks if t.ident != 1] == [TRACKED]  # the second, already confirmed
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, TRACKED)]
+    assert tracks[1].box[0] == pytest.approx(b[0], abs=3) and tracks[1].box[2] == pytest.approx(30, abs=3)
 
 
 def test_cell_grid_kernels_equal_opencv() -> None:

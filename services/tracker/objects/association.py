@@ -25,7 +25,9 @@ knew it was lost. Here:
   to be one target (they share a detection, move together and overlap) merge into the oldest (or, of
   two confirmed ones, the one whose box fits their detection), and a track
   left alone in a detection much bigger than itself (it held a piece or a remnant of its target)
-  takes that detection whole;
+  takes that detection whole; a detection much bigger than the one track it holds, whose events the
+  track's box at its own size leaves partly unexplained beside it, holds a second target, which gets a
+  detection of its own;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
   prediction before `forget_after_us`; a target coming out from behind a nearer one (a new track
   at the edge of that one's box) takes back the id of the track hidden there, by its size, as one
@@ -57,6 +59,8 @@ _GONE = -1  # merged or expired during an update; removed before it returns
 Box = tuple[float, float, float, float]  # x, y, w, h
 # predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2) -> the boxes placed on the events
 Layout = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# a detection, the boxes placed in it -> the box of its recent pixels they leave, their count, the detection's count
+Leftover = Callable[[Box, np.ndarray], tuple[np.ndarray, int, int]]
 # boxes (N x 4) -> the events in each since the last update
 Counts = Callable[[np.ndarray], np.ndarray]
 
@@ -102,6 +106,12 @@ class AssociationParams:
     # a track left alone in a detection much bigger than itself takes it whole; off where detections
     # are grown from the tracks' own predictions (CamShift), which would feed a track its own growth
     take_whole: bool = True
+    # a detection this much bigger than the one confirmed track in it (placed at its size) holds a second
+    # target that joined it if the recent pixels the track leaves are this share of them or more, and their
+    # box covers under `split_cover` of the track's; traced on a target that moved off again beside another
+    split_area: float = 1.6
+    split_share: float = 0.3
+    split_cover: float = 0.5
 
 
 @dataclass
@@ -232,13 +242,16 @@ class MultiObjectTracker:
         self._next_id = 1
 
     def update(self, t_us: int, boxes: np.ndarray, fresh: Counts | None = None,
-               layout: Layout | None = None) -> list[Track]:
+               layout: Layout | None = None, leftover: Leftover | None = None) -> list[Track]:
         """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known how to count the
-        new events in a box since the last update, and how to place tracks that share a detection
-        (else they move by prediction)."""
+        new events in a box since the last update, how to place tracks that share a detection (else they
+        move by prediction) and how to box the events that placed tracks leave in a detection (else a
+        detection is never split)."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
+        if layout is not None and leftover is not None:
+            self._split(dets, pred, layout, leftover)
         inter = [[_overlap(a, b) for b in dets] for a in pred]
         ious = [[_iou(a, b, o) for b, o in zip(dets, row, strict=True)] for a, row in zip(pred, inter, strict=True)]
         live = [tr.state != LOST for tr in self.tracks]
@@ -325,6 +338,30 @@ class MultiObjectTracker:
                 self.tracks.append(Track(self._next_id, det, t_us, first_seen_us=t_us, last_seen_us=t_us))
                 self._next_id += 1
         return list(self.tracks)
+
+    def _split(self, dets: list[Box], pred: list[Box], layout: Layout, leftover: Leftover) -> None:
+        """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose box is
+        clear of the borders: not a target still coming in) is split in two: a second target joined its
+        blob (one that moved off again beside it, or came in at a border behind it). The track's box
+        placed on the blob at its own size is one part; the recent pixels it leaves, if many and mostly
+        beside it, are the other, added at the end. Tentative tracks do not count: the second target's is
+        one (but one that stays young and moves with the other is still folded into it, see `_merge_alike`:
+        a piece of its target)."""
+        p = self.params
+        for di, det in enumerate(dets[:]):
+            inside = [ti for ti, a in enumerate(pred) if self.tracks[ti].state == TRACKED and _overlap(a, det) > 0]
+            if len(inside) != 1:
+                continue
+            tr, a = self.tracks[inside[0]], pred[inside[0]]
+            if self._sides(a) or _overlap(a, det) < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
+                continue
+            placed = layout(np.asarray([a], np.float32), np.asarray([tr.own_size or a[2:]], np.float32))
+            box, n, total = leftover(det, placed)
+            x, y, w, h = placed[0].tolist()
+            rest: Box = (float(box[0]), float(box[1]), float(box[2]), float(box[3]))
+            if n and n >= p.split_share * total and _overlap(rest, (x, y, w, h)) < p.split_cover * _area((x, y, w, h)):
+                dets[di] = (x, y, w, h)
+                dets.append(rest)
 
     def _emerging(self, shared: dict[int, list[int]], pred: list[Box], dets: list[Box],
                   taken: set[int]) -> dict[int, int]:

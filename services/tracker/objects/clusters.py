@@ -148,15 +148,15 @@ def _trimmed_boxes(labels, keep, cell, image, recent, trim):  # noqa: ANN001, AN
         if not keep[lab] or total == 0:
             continue
         cut = trim * total
-        lo, hi = _quantiles(col[lab], cut)
+        lo, hi = trimmed_ends(col[lab], cut)
         out[lab, 0], out[lab, 2] = lo, hi + 1 - lo
-        lo, hi = _quantiles(row[lab], cut)
+        lo, hi = trimmed_ends(row[lab], cut)
         out[lab, 1], out[lab, 3] = lo, hi + 1 - lo
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _quantiles(hist, cut):  # noqa: ANN001, ANN202 - numba kernel
+def trimmed_ends(hist, cut):  # noqa: ANN001, ANN202 - numba kernel
     """First and last bins of `hist` once `cut` counts are left off each end."""
     acc = 0
     lo = 0

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from services.tracker.objects.clusters import trimmed_ends
+
 
 @dataclass
 class LayoutParams:
@@ -151,3 +153,47 @@ def _cover(total, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202
         if sx1 > sx0 and sy1 > sy0:
             score += sign * (total[sy1, sx1] - total[sy0, sx1] - total[sy1, sx0] + total[sy0, sx0])
     return score
+
+
+def leftover(image: np.ndarray, region: np.ndarray, boxes: np.ndarray, recent: float,
+             trim: float = 0.01) -> tuple[np.ndarray, int, int]:
+    """The box (x, y, w, h) of the recent pixels of `region` that none of `boxes` (K x 4) holds, trimmed
+    of the outermost `trim` share on each side; how many there are; how many recent pixels the region has."""
+    return _leftover(image, np.asarray(region, np.float64), np.asarray(boxes, np.float64).reshape(-1, 4),
+                     np.float32(recent), trim)
+
+
+@numba.njit(cache=True, nogil=True)
+def _leftover(image, region, boxes, recent, trim):  # noqa: ANN001, ANN202 - numba kernel
+    """`leftover` in one pass over the region's pixels, into column and row counts of those left."""
+    h_img, w_img = image.shape
+    x0, y0 = max(int(np.floor(region[0])), 0), max(int(np.floor(region[1])), 0)
+    x1 = min(int(np.ceil(region[0] + region[2])), w_img)
+    y1 = min(int(np.ceil(region[1] + region[3])), h_img)
+    out = np.zeros(4, np.float32)
+    if x1 <= x0 or y1 <= y0:
+        return out, 0, 0
+    col = np.zeros(x1 - x0, np.int64)
+    row = np.zeros(y1 - y0, np.int64)
+    total = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if image[y, x] < recent:
+                continue
+            total += 1
+            held = False
+            for k in range(len(boxes)):
+                if boxes[k, 0] <= x < boxes[k, 0] + boxes[k, 2] and boxes[k, 1] <= y < boxes[k, 1] + boxes[k, 3]:
+                    held = True
+                    break
+            if not held:
+                col[x - x0] += 1
+                row[y - y0] += 1
+    n = col.sum()
+    if n == 0:
+        return out, n, total
+    lo, hi = trimmed_ends(col, trim * n)
+    out[0], out[2] = x0 + lo, hi + 1 - lo
+    lo, hi = trimmed_ends(row, trim * n)
+    out[1], out[3] = y0 + lo, hi + 1 - lo
+    return out, n, total

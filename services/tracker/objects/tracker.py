@@ -25,7 +25,7 @@ from services.tracker.objects.association import LOST, AssociationParams, MultiO
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
 from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
-from services.tracker.objects.layout import LayoutParams, fit_layout
+from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
 from services.tracker.objects.sampling import key_events
 
 FRAMES = ("decay", "adaptive")
@@ -117,7 +117,8 @@ class ObjectTracker:
         boxes = self._detect(image, t_us)
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
-            layout=lambda preds, sizes: self._layout(image, preds, sizes))
+            layout=lambda preds, sizes: self._layout(image, preds, sizes),
+            leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent))
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
