@@ -2,7 +2,8 @@
 
 The drone report (seed 003) lost slow targets, locked onto noise once its target had gone and never
 knew it was lost. Here:
-- a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`);
+- a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`), and one
+  whose detections end while it is young (a remnant a target left, or noise) is let go, not held;
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone,
   and a detection that overlaps it only a little (a target passing over it) does not take it away;
@@ -562,7 +563,7 @@ class MultiObjectTracker:
 
     def _unseen(self, tr: Track, pred: Box, t_us: int, observed: list[Box]) -> None:
         """No detection: drop a tentative track after a while; let go of a track that left the
-        image; coast one hidden behind an observed track; hold one that stopped."""
+        image or is young; coast one hidden behind an observed track; hold one that stopped."""
         p = self.params
         unseen_us = t_us - tr.last_seen_us
         if tr.state == TENTATIVE:
@@ -573,8 +574,10 @@ class MultiObjectTracker:
             if t_us - tr.t_us > p.forget_after_us:
                 tr.state = _GONE
             return
-        if self._sides(tr.box) and not self._stopped_in_view(tr):
-            tr.state, tr.vel, tr.t_us = LOST, (0.0, 0.0), t_us  # waits where it left, to be found if it comes back
+        # one that left the image, or a young one (a remnant a target left, or a cluster of noise) that fades, is
+        # let go: it waits where it was, to be found if it comes back
+        if (self._sides(tr.box) and not self._stopped_in_view(tr)) or t_us - tr.first_seen_us < p.young_us:
+            tr.state, tr.vel, tr.t_us = LOST, (0.0, 0.0), t_us
             return
         hidden = _alone(pred, observed)[1] <= 0.5
         if not hidden:
