@@ -341,27 +341,29 @@ class MultiObjectTracker:
         return list(self.tracks)
 
     def _split(self, dets: list[Box], pred: list[Box], layout: Layout, leftover: Leftover) -> None:
-        """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose box is
-        clear of the borders: not a target still coming in) is split in two: a second target joined its
+        """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose
+        box is clear of the borders: not a target still coming in) in two: a second target joined its
         blob (one that moved off again beside it, or came in at a border behind it). The track's box
         placed on the blob at its own size is one part; the recent pixels it leaves, if many and mostly
         beside it, are the other, added at the end. Tentative tracks do not count: the second target's is
         one (but one that stays young and moves with the other is still folded into it, see `_merge_alike`:
         a piece of its target)."""
         p = self.params
-        for di, det in enumerate(dets[:]):
-            inside = [ti for ti, a in enumerate(pred) if self.tracks[ti].state == TRACKED and _overlap(a, det) > 0]
+        confirmed = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
+        for di, det in enumerate(dets[:]):  # the parts added at the end are not split again
+            inside = [(tr, a, inter) for tr, a in confirmed if (inter := _overlap(a, det)) > 0]
             if len(inside) != 1:
                 continue
-            tr, a = self.tracks[inside[0]], pred[inside[0]]
-            if self._sides(a) or _overlap(a, det) < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
+            tr, a, inter = inside[0]
+            if self._sides(a) or inter < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
                 continue
             placed = layout(np.asarray([a], np.float32), np.asarray([tr.own_size or a[2:]], np.float32))
             box, n, total = leftover(det, placed)
             x, y, w, h = placed[0].tolist()
-            rest: Box = (float(box[0]), float(box[1]), float(box[2]), float(box[3]))
-            if n and n >= p.split_share * total and _overlap(rest, (x, y, w, h)) < p.split_cover * _area((x, y, w, h)):
-                dets[di] = (x, y, w, h)
+            rx, ry, rw, rh = box.tolist()
+            own, rest = (x, y, w, h), (rx, ry, rw, rh)
+            if n and n >= p.split_share * total and _overlap(rest, own) < p.split_cover * _area(own):
+                dets[di] = own
                 dets.append(rest)
 
     def _emerging(self, shared: dict[int, list[int]], pred: list[Box], dets: list[Box],
