@@ -185,7 +185,9 @@ class ObjectTracker:
 def warm_up(params: TrackerParams | None = None) -> None:
     """Loads the numba kernels of an update (compiles them, the first time on a machine) on two small
     squares that cross, so that a live tracker's first packets wait for none of it: loading them took
-    over a second on a busy machine, while the camera's packets queued up and the oldest were dropped."""
+    over a second on a busy machine, while the camera's packets queued up and the oldest were dropped.
+    Every other packet is read-only, as packets decoded off the wire are (numba compiles such arrays
+    apart); the rest are writable, as events read from a file are."""
     width, height, side = 96, 48, 12
     tracker = ObjectTracker(width, height, params)
     ys, xs = np.mgrid[:side, :side].reshape(2, -1)
@@ -197,5 +199,7 @@ def warm_up(params: TrackerParams | None = None) -> None:
             part["x"], part["y"] = xs + x0, ys + 18  # x0 stays within 0..width - side
             part["t"] = t_us - 10_000 + np.arange(len(xs)) * 10_000 // len(xs)
             part["p"] = 1
-        tracker.accept(ev_ops.sort_by_time(events))
+        events = ev_ops.sort_by_time(events)
+        events.flags.writeable = step % 2 == 0
+        tracker.accept(events)
         tracker.generate(t_us)
