@@ -359,9 +359,7 @@ class MultiObjectTracker:
                 continue
             placed = layout(np.asarray([a], np.float32), np.asarray([tr.own_size or a[2:]], np.float32))
             box, n, total = leftover(det, placed)
-            x, y, w, h = placed[0].tolist()
-            rx, ry, rw, rh = box.tolist()
-            own, rest = (x, y, w, h), (rx, ry, rw, rh)
+            own, rest = tuple(placed[0].tolist()), tuple(box.tolist())
             if n and n >= p.split_share * total and _overlap(rest, own) < p.split_cover * _area(own):
                 dets[di] = own
                 dets.append(rest)

@@ -147,16 +147,22 @@ def _trimmed_boxes(labels, keep, cell, image, recent, trim):  # noqa: ANN001, AN
         total = col[lab].sum()
         if not keep[lab] or total == 0:
             continue
-        cut = trim * total
-        lo, hi = trimmed_ends(col[lab], cut)
-        out[lab, 0], out[lab, 2] = lo, hi + 1 - lo
-        lo, hi = trimmed_ends(row[lab], cut)
-        out[lab, 1], out[lab, 3] = lo, hi + 1 - lo
+        trimmed_box(col[lab], row[lab], trim * total, out[lab])
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def trimmed_ends(hist, cut):  # noqa: ANN001, ANN202 - numba kernel
+def trimmed_box(col, row, cut, out):  # noqa: ANN001, ANN201 - numba kernel
+    """Into `out` (x, y, w, h): the box of pixels counted per column and row, once `cut` of them are
+    left off each side (from column and row 0)."""
+    lo, hi = _trimmed_ends(col, cut)
+    out[0], out[2] = lo, hi + 1 - lo
+    lo, hi = _trimmed_ends(row, cut)
+    out[1], out[3] = lo, hi + 1 - lo
+
+
+@numba.njit(cache=True, nogil=True)
+def _trimmed_ends(hist, cut):  # noqa: ANN001, ANN202 - numba kernel
     """First and last bins of `hist` once `cut` counts are left off each end."""
     acc = 0
     lo = 0

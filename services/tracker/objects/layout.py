@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from services.tracker.objects.clusters import trimmed_ends
+from services.tracker.objects.clusters import trimmed_box
 
 
 @dataclass
@@ -192,8 +192,7 @@ def _leftover(image, region, boxes, recent, trim):  # noqa: ANN001, ANN202 - num
     n = col.sum()
     if n == 0:
         return out, n, total
-    lo, hi = trimmed_ends(col, trim * n)
-    out[0], out[2] = x0 + lo, hi + 1 - lo
-    lo, hi = trimmed_ends(row, trim * n)
-    out[1], out[3] = y0 + lo, hi + 1 - lo
+    trimmed_box(col, row, trim * n, out)
+    out[0] += x0
+    out[1] += y0
     return out, n, total
