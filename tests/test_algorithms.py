@@ -747,3 +747,22 @@ def test_clusters_grow_a_sparse_target_from_its_dense_part_and_leave_sparse_nois
     assert (x, y) == pytest.approx((40, 60), abs=3) and (w, h) == pytest.approx((80, 80), abs=8)
     params.grow = params.density  # without hysteresis only the dense corner (and bits of the rest) is found
     assert all(b[2] * b[3] < 0.5 * 80 * 80 for b in detect_clusters(image, params))
+
+
+def test_a_target_leaving_through_a_border_beside_another_shrinks_with_its_events() -> None:
+    """A detection cut on one side by another track's box is a target going behind that one, and keeps
+    its track's size; but one that touches the image's border on that axis is leaving there, which
+    explains its shrinking (traced on a target that left beside another: kept at its width, its box
+    slid back into view and was held there)."""
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(60):  # a still target [20, 46, 54, 34] and one going left out through the border
+        x0, x1 = max(100 - 3 * i, 0), 160 - 3 * i
+        seen = [[20, 46, 54, 34]] + ([[x0, 30, x1 - x0, 60]] if x1 > x0 + 2 else [])
+        tracks = mot.update(i * 10_000, np.array(seen, np.float32))
+        leaving = next((t for t in tracks if t.ident == 2), None)
+        if x0 == 0 and x1 > 20:
+            assert leaving.box[0] + leaving.box[2] == pytest.approx(x1, abs=4)  # its right edge with its events
+    for t in range(600_000, 800_000, 10_000):
+        tracks = mot.update(t, np.array([[20, 46, 54, 34]], np.float32))
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, LOST)]
+

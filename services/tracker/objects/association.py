@@ -206,11 +206,14 @@ def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
     return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
 
 
-def _behind(box: Box, usual: Callable[[int], float], others: list[Box]) -> Box:
+def _behind(box: Box, usual: Callable[[int], float], others: list[Box], sides: int) -> Box:
     """A detection cut on one side by another track's box (a nearer target hides that side) and
-    narrower (shorter) than its track's `usual` width (height), given that size back on the hidden side."""
+    narrower (shorter) than its track's `usual` width (height), given that size back on the hidden side;
+    not on an axis where it touches the image's border (`sides`): it is leaving there."""
     out = list(box)
     for axis in (0, 1):
+        if sides & (CUT_X, CUT_Y)[axis]:
+            continue
         lo, hi = box[axis], box[axis] + box[2 + axis]
         across = [o for o in others if o[1 - axis] < box[1 - axis] + box[3 - axis]
                   and o[1 - axis] + o[3 - axis] > box[1 - axis]]  # overlapping it on the other axis
@@ -304,7 +307,7 @@ class MultiObjectTracker:
                 self._learn_rate(tr, new_events)
             box = union([dets[di] for di in members])
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
-                box = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti])
+                box = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], self._sides(box))
             self._correct(tr, box, t_us)
         hidden: set[int] = set()
         for members in shared.values():
