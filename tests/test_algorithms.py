@@ -493,8 +493,10 @@ def test_a_target_coming_out_from_behind_a_nearer_one_gets_its_id_back() -> None
             if small[1] + 30 > 160:  # out under the big one's bottom edge
                 seen.append([150 + (30 - width) / 2, 160, width, small[1] + 30 - 160])
             tracks = mot.update(i * 10_000, np.array(seen, np.float32))
-        below = [t for t in tracks if t.state == TRACKED and t.box[1] >= 150]
+        below = [t for t in tracks if t.state == TRACKED and t.box[1] + t.box[3] > 160]  # out under the edge
         assert len(below) == 1 and (below[0].ident == 1) == same, [(t.ident, t.box) for t in tracks]
+        if same:  # at its whole size, the part still behind the big one given back: [150, 149, 30, 30]
+            assert below[0].box == pytest.approx((150, small[1], 30, 30), abs=2)
 
 
 def test_a_target_seen_again_away_from_the_borders_takes_its_id_back_by_its_size() -> None:
@@ -766,3 +768,15 @@ def test_a_target_leaving_through_a_border_beside_another_shrinks_with_its_event
         tracks = mot.update(t, np.array([[20, 46, 54, 34]], np.float32))
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, LOST)]
 
+
+
+def test_a_target_found_again_on_a_sliver_of_it_keeps_the_size_its_id_is_known_by() -> None:
+    """A target coming back in at a border takes its id back on the sliver first seen; its id is still
+    known by its whole size, not by the sliver's (which would be all it is known by, were it lost again)."""
+    none = np.zeros((0, 4), np.float32)
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [300, 100, 30, 40], [5, 0, 0, 0], 10)  # tracked whole, then out through the right border
+    mot.update(100_000, none)
+    tracks = _follow(mot, 300_000, [340, 180, 6, 34], [0, 0, 0, 0], 5)  # back on a sliver, most of its height
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
+    assert tracks[0].full_size(1) == pytest.approx(40, abs=1)

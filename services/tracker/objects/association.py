@@ -206,11 +206,15 @@ def _alone(box: Box, others: list[Box]) -> tuple[list[Box], float]:
     return cuts, 1 - sum(c[2] * c[3] for c in cuts) / _area(box)
 
 
-def _behind(box: Box, usual: Callable[[int], float], others: list[Box], sides: int) -> Box:
+def _behind(box: Box, usual: Callable[[int], float], others: list[Box],
+            sides: int) -> tuple[Box, tuple[float, float]]:
     """A detection cut on one side by another track's box (a nearer target hides that side) and
     narrower (shorter) than its track's `usual` width (height), given that size back on the hidden side;
-    not on an axis where it touches the image's border (`sides`): it is leaving there."""
+    not on an axis where it touches the image's border (`sides`): it is leaving there. With the box, the
+    point that moves with the target on each axis, as a share of the box: its seen edge where it was
+    given size back (its centre jumped), else its centre."""
     out = list(box)
+    anchor = [0.5, 0.5]
     for axis in (0, 1):
         if sides & (CUT_X, CUT_Y)[axis]:
             continue
@@ -221,7 +225,8 @@ def _behind(box: Box, usual: Callable[[int], float], others: list[Box], sides: i
         cut_hi = any(o[axis] - 1 <= hi < o[axis] + o[2 + axis] for o in across)
         if cut_lo != cut_hi and box[2 + axis] < WHOLE * (full := usual(axis)):
             out[axis], out[2 + axis] = (hi - full if cut_lo else lo), full
-    return out[0], out[1], out[2], out[3]
+            anchor[axis] = 1.0 if cut_lo else 0.0
+    return (out[0], out[1], out[2], out[3]), (anchor[0], anchor[1])
 
 
 def _biggest(boxes: list[Box]) -> int:
@@ -305,10 +310,10 @@ class MultiObjectTracker:
                     self._hold(tr, t_us)
                     continue
                 self._learn_rate(tr, new_events)
-            box = union([dets[di] for di in members])
+            box, anchor = union([dets[di] for di in members]), (0.5, 0.5)
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
-                box = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], self._sides(box))
-            self._correct(tr, box, t_us)
+                box, anchor = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], self._sides(box))
+            self._correct(tr, box, t_us, anchor)
         hidden: set[int] = set()
         for members in shared.values():
             boxes = [pred[ti] for ti in members]
@@ -531,14 +536,15 @@ class MultiObjectTracker:
         busiest = max(n / _area(b) for i, (b, n) in enumerate(zip(boxes, new_in, strict=True)) if i != k)
         return own < p.still_contrast * busiest * share * _area(box) and self._stopped(tr, own, share)
 
-    def _correct(self, tr: Track, box: Box, t_us: int) -> None:
-        """A measured box: velocity from the centre's move, size smoothed."""
+    def _correct(self, tr: Track, box: Box, t_us: int, anchor: tuple[float, float] = (0.5, 0.5)) -> None:
+        """A measured box: velocity from the move of its `anchor` (the share of the box on each axis that
+        moves with the target: its centre, or the seen edge of one given size behind another), size smoothed."""
         p = self.params
         dt_s = (t_us - tr.t_us) / 1e6
-        (cx, cy), (ox, oy) = _centre(box), _centre(tr.box)
         if dt_s > 0 and tr.state != LOST:
             g = p.velocity_gain
-            tr.vel = ((1 - g) * tr.vel[0] + g * (cx - ox) / dt_s, (1 - g) * tr.vel[1] + g * (cy - oy) / dt_s)
+            dx, dy = ((box[k] + anchor[k] * box[2 + k]) - (tr.box[k] + anchor[k] * tr.box[2 + k]) for k in (0, 1))
+            tr.vel = ((1 - g) * tr.vel[0] + g * dx / dt_s, (1 - g) * tr.vel[1] + g * dy / dt_s)
         elif tr.state == LOST:
             tr.vel = (0.0, 0.0)
         if tr.state == LOST or tr.hits < p.confirm_hits:
@@ -546,7 +552,7 @@ class MultiObjectTracker:
         else:
             g = p.size_gain
             w, h = (1 - g) * tr.box[2] + g * box[2], (1 - g) * tr.box[3] + g * box[3]
-            tr.box = (cx - w / 2, cy - h / 2, w, h)
+            tr.box = (box[0] + anchor[0] * (box[2] - w), box[1] + anchor[1] * (box[3] - h), w, h)
         tr.hits += 1
         tr.own_size = tr.box[2], tr.box[3]
         sides = self._sides(tr.box)
@@ -676,6 +682,9 @@ class MultiObjectTracker:
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = lost[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE
+            # the id's sizes go on with it: a target found again on a sliver of it is still known by its whole size
+            new.widths = deque([*found.widths, *new.widths], maxlen=SIZE_MEMORY)
+            new.heights = deque([*found.heights, *new.heights], maxlen=SIZE_MEMORY)
             return True
         return False
 
