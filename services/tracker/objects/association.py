@@ -7,7 +7,8 @@ knew it was lost. Here:
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone,
   and a detection that overlaps it only a little (a target passing over it) does not take it away;
-  a target going behind another keeps its usual size where its detection is cut by the other's box;
+  a target going behind another keeps its usual size where its detection is cut by the other's box,
+  and moves with the edge still seen (not the box's centre, which jumps as the size comes back);
   a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
   blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
   `hold_us`; one that stops at a border with its whole size in view is held too, but one that
@@ -538,7 +539,8 @@ class MultiObjectTracker:
 
     def _correct(self, tr: Track, box: Box, t_us: int, anchor: tuple[float, float] = (0.5, 0.5)) -> None:
         """A measured box: velocity from the move of its `anchor` (the share of the box on each axis that
-        moves with the target: its centre, or the seen edge of one given size behind another), size smoothed."""
+        moves with the target: its centre, or the seen edge of one given size behind another), size smoothed
+        about that same point."""
         p = self.params
         dt_s = (t_us - tr.t_us) / 1e6
         if dt_s > 0 and tr.state != LOST:
@@ -675,7 +677,8 @@ class MultiObjectTracker:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
         fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
         may cut on `new`, is not much smaller than `new`'s (`axis` None: whose sizes on both axes fit,
-        `new` seen whole); that one is removed. Whether it took an id."""
+        `new` seen whole); that one is removed, the sizes its id is known by going on with `new`. Whether it
+        took an id."""
         p = self.params
         limit = math.log(p.reid_size_ratio)
         misfit = sorted((m, i) for i, tr in enumerate(lost) if (m := self._misfit(new, tr, axis)) < limit)
