@@ -545,7 +545,8 @@ class MultiObjectTracker:
         dt_s = (t_us - tr.t_us) / 1e6
         if dt_s > 0 and tr.state != LOST:
             g = p.velocity_gain
-            dx, dy = ((box[k] + anchor[k] * box[2 + k]) - (tr.box[k] + anchor[k] * tr.box[2 + k]) for k in (0, 1))
+            (ax, ay), (x, y, w, h) = anchor, tr.box
+            dx, dy = box[0] + ax * box[2] - (x + ax * w), box[1] + ay * box[3] - (y + ay * h)
             tr.vel = ((1 - g) * tr.vel[0] + g * dx / dt_s, (1 - g) * tr.vel[1] + g * dy / dt_s)
         elif tr.state == LOST:
             tr.vel = (0.0, 0.0)
