@@ -11,7 +11,7 @@ from services.camera.simulator import EventSimulator, ObjectsScene
 from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
-from services.tracker.objects.association import LOST, TRACKED, MultiObjectTracker, Track, iou
+from services.tracker.objects.association import LOST, TENTATIVE, TRACKED, MultiObjectTracker, Track, iou
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
 
 
@@ -780,3 +780,19 @@ def test_a_target_found_again_on_a_sliver_of_it_keeps_the_size_its_id_is_known_b
     tracks = _follow(mot, 300_000, [340, 180, 6, 34], [0, 0, 0, 0], 5)  # back on a sliver, most of its height
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)]
     assert tracks[0].full_size(1) == pytest.approx(40, abs=1)
+
+
+def test_a_track_coming_in_where_a_lost_one_may_take_it_is_reported_tentative_until_that_is_decided() -> None:
+    """A track confirmed at the border a lost track left by, not (yet) of its size, may still take its id
+    as more of it comes in: it is reported tentative until that is decided (an id shown and then changed
+    is one more id switch), then tracked. One coming in where no lost track waits is reported at once."""
+    none = np.zeros((0, 4), np.float32)
+    for x, waits in ((340, True), (0, False)):  # back in at the right border it left by, or at the left
+        mot = MultiObjectTracker(width=346, height=260)
+        _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)  # out through the right border
+        mot.update(100_000, none)
+        tracks = _follow(mot, 300_000, [x, 180, 6, 40], [0, 0, 0, 0], 5)  # twice as tall: not it, so far
+        new = next(t for t in tracks if t.ident != 1)
+        assert new.state == TRACKED and mot.reported_state(new) == (TENTATIVE if waits else TRACKED)
+        _follow(mot, 350_000, [x, 180, 6, 40], [0, 0, 0, 0], 30)  # 0.3 s on: a new target after all
+        assert new.ident != 1 and mot.reported_state(new) == TRACKED

@@ -2,8 +2,9 @@
 
 The drone report (seed 003) lost slow targets, locked onto noise once its target had gone and never
 knew it was lost. Here:
-- a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`), and one
-  whose detections end while it is young (a remnant a target left, or noise) is let go, not held;
+- a track is reported only once confirmed by several detections (`TENTATIVE` -> `TRACKED`), and
+  as tentative while a lost track may still give it its id (`reported_state`); one whose detections
+  end while it is young (a remnant a target left, or noise) is let go, not held;
 - a target that stops is held where it stopped, from the moment its detection has far fewer new
   events than usual (it is only the fading image of the target), not once the detection has gone,
   and a detection that overlaps it only a little (a target passing over it) does not take it away;
@@ -597,6 +598,16 @@ class MultiObjectTracker:
             pred = tr.predict(t_us)
         self._coast(tr, pred, t_us)
         tr.score *= 0.995
+
+    def reported_state(self, tr: Track) -> int:
+        """The state a track is reported in: `TENTATIVE` while it comes in where a lost track may still give
+        it its id (at a border a lost one left by; anywhere, away from the borders), its own otherwise. An id
+        shown and then changed a few updates later is one more switch for whoever follows the target."""
+        if tr.state != TRACKED or not tr.entering:
+            return tr.state
+        sides = self._sides(tr.box)
+        waited = any(o.state == LOST and (not sides or self._sides(o.box) & sides) for o in self.tracks)
+        return TENTATIVE if waited else tr.state
 
     def _stopped_in_view(self, tr: Track) -> bool:
         """Whether a track at a border is a target that stopped there, held with its whole size in view

@@ -126,7 +126,7 @@ class ObjectTracker:
             boxes=np.array([tr.box for tr in tracks], np.float32).reshape(-1, 4),
             scores=np.array([tr.score for tr in tracks], np.float32),
             vels=np.array([tr.vel for tr in tracks], np.float32).reshape(-1, 2),
-            states=np.array([tr.state for tr in tracks], np.uint8),
+            states=np.array([self.association.reported_state(tr) for tr in tracks], np.uint8),
         )
 
     def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
