@@ -769,7 +769,6 @@ def test_a_target_leaving_through_a_border_beside_another_shrinks_with_its_event
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED), (2, LOST)]
 
 
-
 def test_a_target_found_again_on_a_sliver_of_it_keeps_the_size_its_id_is_known_by() -> None:
     """A target coming back in at a border takes its id back on the sliver first seen; its id is still
     known by its whole size, not by the sliver's (which would be all it is known by, were it lost again)."""

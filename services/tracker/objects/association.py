@@ -544,10 +544,11 @@ class MultiObjectTracker:
         about that same point."""
         p = self.params
         dt_s = (t_us - tr.t_us) / 1e6
+        ax, ay = anchor
         if dt_s > 0 and tr.state != LOST:
             g = p.velocity_gain
-            (ax, ay), (x, y, w, h) = anchor, tr.box
-            dx, dy = box[0] + ax * box[2] - (x + ax * w), box[1] + ay * box[3] - (y + ay * h)
+            was = tr.box
+            dx, dy = box[0] + ax * box[2] - (was[0] + ax * was[2]), box[1] + ay * box[3] - (was[1] + ay * was[3])
             tr.vel = ((1 - g) * tr.vel[0] + g * dx / dt_s, (1 - g) * tr.vel[1] + g * dy / dt_s)
         elif tr.state == LOST:
             tr.vel = (0.0, 0.0)
@@ -556,7 +557,7 @@ class MultiObjectTracker:
         else:
             g = p.size_gain
             w, h = (1 - g) * tr.box[2] + g * box[2], (1 - g) * tr.box[3] + g * box[3]
-            tr.box = (box[0] + anchor[0] * (box[2] - w), box[1] + anchor[1] * (box[3] - h), w, h)
+            tr.box = (box[0] + ax * (box[2] - w), box[1] + ay * (box[3] - h), w, h)
         tr.hits += 1
         tr.own_size = tr.box[2], tr.box[3]
         sides = self._sides(tr.box)
