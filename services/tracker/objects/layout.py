@@ -90,14 +90,16 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
     within `reach` (and the region) that best covers the pixels no other box covers, less `pull`
     times its squared distance from `pred`; then each of its edges the move within `resize` that
     does, less `size_pull` times its squared relative size change from `own`, per px^2 of box.
-    One integral image of the gain serves every sum (see `_cover`)."""
+    One integral image of recent pixels (int32: exact, and lighter than the gains' floats) serves every
+    sum (see `_cover`)."""
     h, w = region.shape
-    total = np.zeros((h + 1, w + 1), np.float64)
+    total = np.zeros((h + 1, w + 1), np.int32)
     for y in range(h):
-        run = 0.0
+        run = 0
+        src, above, row = region[y], total[y], total[y + 1]
         for x in range(w):
-            run += (1.0 if region[y, x] >= recent else 0.0) - density
-            total[y + 1, x + 1] = total[y, x + 1] + run
+            run += src[x] >= recent
+            row[x + 1] = above[x + 1] + run
     k_n = len(pos)
     others = np.empty(k_n - 1, np.int64)
     rect = np.empty(4, np.int64)
@@ -112,7 +114,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
             for ya in range(max(pos[k, 1] - reach, 0), min(pos[k, 1] + reach, h - size[k, 1]) + 1):
                 for xa in range(max(pos[k, 0] - reach, 0), min(pos[k, 0] + reach, w - size[k, 0]) + 1):
                     ex, ey = xa - pred[k, 0], ya - pred[k, 1]
-                    score = (_cover(total, pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
+                    score = (_cover(total, density, pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
                              - pull * (ex * ex + ey * ey))
                     if score > best:
                         best, bx, by = score, xa, ya
@@ -126,7 +128,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
                     if bw < 1 or bh < 1 or rect[0] < 0 or rect[1] < 0 or rect[2] > w or rect[3] > h:
                         continue
                     dw, dh = bw / own[k, 0] - 1.0, bh / own[k, 1] - 1.0
-                    score = (_cover(total, pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
+                    score = (_cover(total, density, pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
                              - size_pull * own[k, 0] * own[k, 1] * (dw * dw + dh * dh))
                     if score > best:
                         best, best_at = score, v
@@ -135,10 +137,11 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cover(total, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202 - numba kernel
+def _cover(total, density, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202 - numba kernel
     """The gain of the pixels of box (x0, y0)-(x1, y1) that none of the first `m` boxes of `others`
-    covers, from the integral image `total`: what they cover is cut out by inclusion-exclusion over
-    their intersections (rectangles), 2^m sums: cheap for the two to four targets a blob holds."""
+    covers (their recent pixels less `density` times their area), from the integral image `total`: what
+    they cover is cut out by inclusion-exclusion over their intersections (rectangles), 2^m sums: cheap
+    for the two to four targets a blob holds."""
     h, w = total.shape[0] - 1, total.shape[1] - 1
     score = 0.0
     for subset in range(1 << m):  # subset 0 is the box itself
@@ -151,7 +154,8 @@ def _cover(total, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202
                 sign = -sign
         sx0, sy0, sx1, sy1 = max(sx0, 0), max(sy0, 0), min(sx1, w), min(sy1, h)
         if sx1 > sx0 and sy1 > sy0:
-            score += sign * (total[sy1, sx1] - total[sy0, sx1] - total[sy1, sx0] + total[sy0, sx0])
+            recent = total[sy1, sx1] - total[sy0, sx1] - total[sy1, sx0] + total[sy0, sx0]
+            score += sign * (recent - density * ((sx1 - sx0) * (sy1 - sy0)))
     return score
 
 
