@@ -225,9 +225,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     scores = eval_tracking(Path(args.pred), Path(args.truth))
     if args.json:
         print(json.dumps(scores))
-    else:
-        for k, v in scores.items():
-            print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
+        return 0
+    events = scores.pop("id_switch_events")
+    for k, v in scores.items():
+        print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
+    for e in events:  # where to look: the time, the truth object, the track ids before and after
+        print(f"{'id switch':>30}: {e['t_us'] / 1e6:.3f} s, object {e['object']}: track {e['from_id']} -> {e['to_id']}")
     return 0
 
 
@@ -368,7 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="score results against ground truth")
     kinds = p.add_subparsers(dest="kind", required=True, metavar="KIND")
-    q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches")
+    q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches "
+                                          "(each listed with its time, object and ids)")
     q.add_argument("--pred", required=True, help="tracks CSV from etam track")
     q.add_argument("--truth", required=True, help="a recording with /truth/boxes (e.g. from etam sim objects)")
     q.add_argument("--json", action="store_true", help="machine-readable output")

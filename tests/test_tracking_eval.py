@@ -37,7 +37,8 @@ def test_misses_false_boxes_shifts_stale_frames_and_id_switches_are_counted() ->
     assert s.op50 == 0.5 and s.precision20 == 1.0 and s.false_positives_per_s == pytest.approx(1.0)
     switched = truth.copy()
     switched[(switched[:, 1] == 1) & (switched[:, 0] >= 500_000), 1] = 7  # object 1's track changes id once
-    assert evaluate(switched, truth).id_switches == 1
+    s = evaluate(switched, truth)
+    assert s.id_switches == 1 and s.id_switch_events == [{"t_us": 500_000, "object": 1, "from_id": 1, "to_id": 7}]
     sparse = truth[truth[:, 0] % 100_000 == 0]  # predictions every 100 ms: older than the 20 ms allowed
     assert evaluate(sparse, truth).op50 == pytest.approx(2 / 5)  # at 3 of every 5 truth frames
     assert evaluate(np.zeros((0, 6)), truth).op50 == 0.0
@@ -58,7 +59,6 @@ def test_boxes_on_dont_care_regions_are_not_false_and_empty_frames_count() -> No
     assert s.frames == 50 and s.false_positives_per_s == pytest.approx(20 / 50)  # its track there is false
 
 
-
 def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot() -> None:
     # two targets one on top of the other; track 5 always on object 1, track 6 between them, nearer
     # object 1 at odd frames: Hungarian alone would swap the pairs every frame, CLEAR MOT keeps them
@@ -73,6 +73,7 @@ def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot(
     assert s.id_switches == 0 and s.op50 == 1.0
     pred[20:, 1] = np.where(k >= 10, 9, 6)  # the second track changes id once
     assert evaluate(pred, truth).id_switches == 1
+
 
 def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     h5, csv = tmp_path / "o.h5", tmp_path / "tracks.csv"
@@ -97,6 +98,10 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
     scores = json.loads(run.stdout)
     assert scores["frames"] >= 150 and scores["objects"] >= 2
     assert scores["op50"] > 0.4 and scores["precision20"] > 0.4  # a floor: the tracker finds the objects
+    text = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5)), capture_output=True,
+                          text=True, timeout=120).stdout
+    assert f"precision20: {scores['precision20']:.3f}" in text  # the same figures, one per line, and each switch
+    assert text.count("id switch:") == scores["id_switches"] == len(scores["id_switch_events"])
     bad = subprocess.run(etam_argv("eval", "tracking", "--pred", str(h5), "--truth", str(h5)), capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "not a tracks CSV" in bad.stderr and "Traceback" not in bad.stderr

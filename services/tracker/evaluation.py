@@ -13,12 +13,13 @@ of overlapping targets swap matches from frame to frame and count as switches. F
   box at least half inside a "don't care" box (an object in the image the truth does not score:
   mostly out of view or hidden, as MOT's ignore regions) is not counted. Frames with no truth box
   between the first and last count too (any box there is false);
-- id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes.
+- id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes, each also
+  listed (time, object, the id before and after) so that a tracker's faults can be looked up.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -39,6 +40,7 @@ class TrackingScores:
     false_positives_per_s: float
     id_switches: int
     id_switches_per_object_minute: float
+    id_switch_events: list[dict[str, int]] = field(default_factory=list)  # t_us, object, from_id, to_id
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -100,7 +102,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     centre_err: list[float] = []
     false_boxes = 0
     last_match: dict[int, int] = {}
-    switches = 0
+    switches: list[dict[str, int]] = []
     for t, gt, dont_care in zip(t_truth, truth_frames, ignore_frames, strict=True):
         k = np.searchsorted(t_pred, t, side="right") - 1
         pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
@@ -117,7 +119,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
                 matched_pred[c] = True
                 obj, ident = int(gt[r, 1]), int(pr[c, 1])
                 if obj in last_match and last_match[obj] != ident:
-                    switches += 1
+                    switches.append({"t_us": int(t), "object": obj, "from_id": last_match[obj], "to_id": ident})
                 last_match[obj] = ident
         ious.extend(best.tolist())
         centre_err.extend(err.tolist())
@@ -139,6 +141,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
         success_auc=float(np.mean([(iou_arr > th).mean() for th in thresholds])) if n else 0.0,
         precision20=float((err_arr <= 20).mean()) if n else 0.0,
         false_positives_per_s=false_boxes * period_s / duration_s if duration_s else 0.0,
-        id_switches=switches,
-        id_switches_per_object_minute=switches / objects / (duration_s / 60) if objects and duration_s else 0.0,
+        id_switches=len(switches),
+        id_switches_per_object_minute=len(switches) / objects / (duration_s / 60) if objects and duration_s else 0.0,
+        id_switch_events=switches,
     )
