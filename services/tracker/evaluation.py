@@ -19,7 +19,7 @@ of overlapping targets swap matches from frame to frame and count as switches. F
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -40,7 +40,7 @@ class TrackingScores:
     false_positives_per_s: float
     id_switches: int
     id_switches_per_object_minute: float
-    id_switch_events: list[dict[str, int]] = field(default_factory=list)  # t_us, object, from_id, to_id
+    id_switch_events: list[dict[str, int]]  # t_us, object, from_id, to_id
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -134,6 +134,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     duration_s = len(t_truth) * period_s
     objects = len(np.unique(truth[:, 1])) if len(truth) else 0
     thresholds = np.linspace(0, 1, 21)
+    n_switches = len(switches)
     return TrackingScores(
         truth_boxes=n, frames=len(t_truth), duration_s=duration_s, objects=objects,
         op50=float((iou_arr >= 0.5).mean()) if n else 0.0,
@@ -141,7 +142,7 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
         success_auc=float(np.mean([(iou_arr > th).mean() for th in thresholds])) if n else 0.0,
         precision20=float((err_arr <= 20).mean()) if n else 0.0,
         false_positives_per_s=false_boxes * period_s / duration_s if duration_s else 0.0,
-        id_switches=len(switches),
-        id_switches_per_object_minute=len(switches) / objects / (duration_s / 60) if objects and duration_s else 0.0,
+        id_switches=n_switches,
+        id_switches_per_object_minute=n_switches / objects / (duration_s / 60) if objects and duration_s else 0.0,
         id_switch_events=switches,
     )
