@@ -8,7 +8,7 @@ import pytest
 from services.camera.simulator import EventSimulator, ObjectsScene
 from services.messages import EVENT_DTYPE
 from services.tracker.objects.association import TRACKED, iou
-from services.tracker.objects.frames import AdaptiveWindow, frame_quality
+from services.tracker.objects.frames import AdaptiveWindow, RecentEvents, frame_quality
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.sampling import key_events
 from services.tracker.objects.tracker import METHODS, ObjectTracker, method_params
@@ -41,12 +41,30 @@ def test_frame_quality_prefers_a_sharp_frame_to_a_sparse_or_smeared_one() -> Non
     edge = np.zeros((60, 60), np.float32)
     edge[10:50, 30:32] = 3  # a sharp edge
     smeared = np.zeros_like(edge)
-    smeared[10:50, 10:50] = 0.3 * 3  # the same edge dragged across the frame
+    smeared[10:50, 10:50] = 1  # the same edge dragged across the frame
     rng = np.random.default_rng(0)
     sparse = np.zeros_like(edge)
     sparse[rng.integers(0, 60, 40), rng.integers(0, 60, 40)] = 1  # too short a window: scattered events
     assert frame_quality(edge) > frame_quality(smeared) and frame_quality(edge) > frame_quality(sparse)
     assert frame_quality(np.zeros_like(edge)) == 0.0
+
+
+def test_recent_events_keep_exactly_the_events_since_the_last_drop_across_regrowth() -> None:
+    rng = np.random.default_rng(3)
+    recent, kept = RecentEvents(capacity=16), []
+    t = cut = 0
+    for step in range(60):
+        n = int(rng.integers(0, 40))
+        chunk = _events(rng.integers(0, 346, n), rng.integers(0, 260, n), t + np.sort(rng.integers(0, 1000, n)))
+        t += 1000
+        recent.append(chunk)
+        kept.append(chunk)
+        cut = max(cut, t - int(rng.integers(0, 5000)))  # windows only move on
+        recent.drop_before(cut)
+        want = np.concatenate(kept)
+        want = want[want["t"] >= cut]
+        got_t, got_x, got_y = recent.columns()
+        assert np.array_equal(got_t, want["t"]) and np.array_equal(got_x, want["x"]) and np.array_equal(got_y, want["y"])
 
 
 def _bar_events(speed_px_s: float, duration_us: int) -> np.ndarray:
