@@ -53,7 +53,7 @@ def test_recent_events_keep_exactly_the_events_since_the_last_drop_across_regrow
     rng = np.random.default_rng(3)
     recent, kept = RecentEvents(capacity=16), []
     t = cut = 0
-    for step in range(60):
+    for _ in range(60):
         n = int(rng.integers(0, 40))
         chunk = _events(rng.integers(0, 346, n), rng.integers(0, 260, n), t + np.sort(rng.integers(0, 1000, n)))
         t += 1000
@@ -63,8 +63,8 @@ def test_recent_events_keep_exactly_the_events_since_the_last_drop_across_regrow
         recent.drop_before(cut)
         want = np.concatenate(kept)
         want = want[want["t"] >= cut]
-        got_t, got_x, got_y = recent.columns()
-        assert np.array_equal(got_t, want["t"]) and np.array_equal(got_x, want["x"]) and np.array_equal(got_y, want["y"])
+        got = recent.columns()
+        assert all(np.array_equal(col, want[name]) for col, name in zip(got, ("t", "x", "y"), strict=True))
 
 
 def _bar_events(speed_px_s: float, duration_us: int) -> np.ndarray:
