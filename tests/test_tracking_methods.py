@@ -141,7 +141,8 @@ import numpy as np
 from services.messages import EVENT_DTYPE, EventPacket, decode
 from services.tracker.objects import accumulator, activity, clusters, layout
 from services.tracker.objects.tracker import ObjectTracker, warm_up
-kernels = (accumulator._add, accumulator._decay, activity._count, activity._count_in, clusters._detect, layout._placed)
+kernels = (accumulator._add, accumulator._decay, activity.count_into, activity._count_in, clusters._detect,
+           layout._placed)
 assert not any(k.signatures for k in kernels)
 warm_up()
 loaded = [len(k.signatures) for k in kernels]

@@ -23,7 +23,7 @@ class FreshCounts:
 
     def accept(self, events: np.ndarray) -> None:
         if len(events):
-            _count(self.counts, events["x"], events["y"], self.shift)
+            count_into(self.counts, events["x"], events["y"], self.shift)
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """New events in each box (N x 4: x, y, w, h; the cells it touches)."""
@@ -35,7 +35,8 @@ class FreshCounts:
 
 
 @numba.njit(cache=True, nogil=True)
-def _count(counts, xs, ys, shift):  # noqa: ANN001, ANN202 - numba kernel
+def count_into(counts, xs, ys, shift):  # noqa: ANN001, ANN201 - numba kernel
+    """Adds each event to its cell of `2**shift` px in `counts` (rows x cols); events beyond it are left out."""
     rows, cols = counts.shape
     for i in range(len(xs)):
         cx, cy = np.int32(xs[i]) >> shift, np.int32(ys[i]) >> shift

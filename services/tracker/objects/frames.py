@@ -17,8 +17,9 @@ import math
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
+
+from services.tracker.objects.activity import count_into
 
 
 @dataclass
@@ -73,15 +74,14 @@ class AdaptiveWindow:
             dt = float(np.clip(dt, p.min_dt_us, p.max_dt_us))
             starts.append(int(np.searchsorted(t, math.ceil(t_us - dt), side="left")))  # ints: no cast of t
         # the candidates are suffixes of one another: their images are built in one pass, shortest first
-        images: list[tuple[int, np.ndarray]] = []
+        images: list[np.ndarray] = [self.image] * len(starts)
         counts, end = np.zeros((self.height, self.width), np.int32), len(t)
         for k in sorted(range(len(starts)), key=lambda k: -starts[k]):
-            _add_counts(counts, x[starts[k]:end], y[starts[k]:end])
+            count_into(counts, x[starts[k]:end], y[starts[k]:end], 0)
             end = starts[k]
-            images.append((k, counts.copy()))
-        images.sort(key=lambda item: item[0])  # back in the candidates' order: of equal ones, the first wins
-        best = int(np.argmax([frame_quality(img) for _, img in images]))
-        self.chosen, self.image = ("count" if best == 0 else "time"), images[best][1].astype(np.float32)
+            images[k] = counts.copy()
+        best = int(np.argmax([frame_quality(img) for img in images]))  # of equal ones, the first
+        self.chosen, self.image = ("count" if best == 0 else "time"), images[best].astype(np.float32)
         first = starts[best]
         self.n = max(len(t) - first, p.min_events)
         span = t_us - int(t[first]) if first < len(t) else self.dt_us
@@ -125,10 +125,3 @@ class RecentEvents:
         live = slice(self._lo, self._hi)
         return self._t[live], self._x[live], self._y[live]
 
-
-@numba.njit(cache=True, nogil=True)
-def _add_counts(counts, xs, ys):  # noqa: ANN001, ANN202 - numba kernel
-    h, w = counts.shape
-    for i in range(len(xs)):
-        if xs[i] < w and ys[i] < h:
-            counts[ys[i], xs[i]] += 1
