@@ -104,8 +104,8 @@ def format_results(results: dict) -> str:
     for row in results.get("tracking", []) + results.get("tracking-held-out", []):
         lines.append(f"{row['stage']} seed {row['seed']!s:>4}: OP50 {row['op50']:.3f} OP75 {row['op75']:.3f} "
                      f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
-                     f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f}"
-                     f"  ({row['method']})")
+                     f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f} "
+                     f"IDF1 {row['idf1']:.3f} MOTA {row['mota']:.3f}  ({row['method']})")
     for row in results.get("tracker", []):
         p99 = f", p99 {row['update_ms_p99']:.2f}" if "update_ms_p99" in row else ""
         lines.append(f"{row['stage']} {row['method']:<20} {row['window_ms']:.0f} ms windows: "

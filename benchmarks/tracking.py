@@ -43,7 +43,8 @@ from services.tracker.evaluation import split_frames
 from services.tracker.objects.association import intersection, iou, union
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, ObjectTracker, method_params, warm_up
 
-FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute")
+FIGURES = ("op50", "op75", "success_auc", "precision20", "false_positives_per_s", "id_switches_per_object_minute",
+           "idf1", "mota")
 DV_BANDWIDTH_PX = 20
 PACKET_US = 10_000
 SPEED_SIM = SimParams(contrast=0.06)  # the objects scene at about 1 Mev/s

@@ -11,6 +11,7 @@ import pytest
 
 from services.camera.formats import open_recording
 from services.tracker.evaluation import evaluate
+from services.tracker.objects.association import iou
 from tests.conftest import etam_argv
 
 
@@ -73,6 +74,37 @@ def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot(
     assert s.id_switches == 0 and s.op50 == 1.0
     pred[20:, 1] = np.where(k >= 10, 9, 6)  # the second track changes id once
     assert evaluate(pred, truth).id_switches == 1
+
+
+def test_mota_and_idf1_agree_with_py_motmetrics() -> None:
+    # three objects on crossing-free paths; the tracks jitter, miss frames, add false boxes, and two
+    # swap ids for a stretch (two switches there and two back): py-motmetrics scores the same boxes
+    mm = pytest.importorskip("motmetrics")
+    rng = np.random.default_rng(7)
+    frames, period = 120, 20_000
+    truth = np.asarray([[k * period, obj, 10 + 2 * k, 10 + 70 * obj, 30, 40]
+                        for k in range(frames) for obj in (0, 1, 2)], np.float64)
+    pred = truth.copy()
+    pred[:, 1] += 10
+    pred[:, 2:4] += rng.normal(0, 4, (len(pred), 2))
+    swap = (pred[:, 0] >= 40 * period) & (pred[:, 0] < 70 * period) & (pred[:, 1] < 12)
+    pred[swap, 1] = 21 - pred[swap, 1]  # tracks 10 and 11 swap objects
+    pred = pred[rng.random(len(pred)) > 0.1]  # misses
+    at = np.arange(0, frames, 7) * period
+    noise = np.c_[at, np.full(len(at), 99), np.full((len(at), 2), 250.0), np.full((len(at), 2), 20.0)]
+    pred = np.concatenate([pred, noise])  # false boxes away from every object
+    s = evaluate(pred, truth)
+
+    acc = mm.MOTAccumulator(auto_id=True)
+    for t in np.unique(truth[:, 0]):
+        gt, pr = truth[truth[:, 0] == t], pred[pred[:, 0] == t]
+        overlap = iou(gt[:, 2:6], pr[:, 2:6])  # motmetrics' own iou_matrix calls np.asfarray, gone in numpy 2
+        acc.update(gt[:, 1].astype(int), pr[:, 1].astype(int), np.where(overlap >= 0.5, 1 - overlap, np.nan))
+    ref = mm.metrics.create().compute(acc, metrics=["mota", "idf1", "idp", "idr", "num_switches"], name="etam")
+    assert s.id_switches == int(ref["num_switches"].iloc[0]) == 4
+    for ours, theirs in ((s.mota, "mota"), (s.idf1, "idf1"), (s.idp, "idp"), (s.idr, "idr")):
+        assert ours == pytest.approx(float(ref[theirs].iloc[0]), abs=1e-9), theirs
+    assert 0.5 < s.idf1 < 0.9 and s.mota < 1.0  # the swap, misses and false boxes cost
 
 
 def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
