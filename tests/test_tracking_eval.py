@@ -52,6 +52,7 @@ def test_boxes_on_dont_care_regions_are_not_false_and_empty_frames_count() -> No
     pred = truth.copy()
     assert evaluate(pred, one).false_positives_per_s == pytest.approx(1.0)  # the box on object 2 is false ...
     assert evaluate(pred, one, ignore=ignore).false_positives_per_s == 0.0  # ... unless object 2 is "don't care"
+    assert evaluate(pred, one).idp == pytest.approx(0.5) and evaluate(pred, one, ignore=ignore).idf1 == 1.0  # IDF1 too
     shifted = pred.copy()
     shifted[shifted[:, 1] == 2, 3] += 25  # now mostly off it: false again
     assert evaluate(shifted, one, ignore=ignore).false_positives_per_s == pytest.approx(1.0)
