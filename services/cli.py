@@ -372,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="score results against ground truth")
     kinds = p.add_subparsers(dest="kind", required=True, metavar="KIND")
     q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches "
-                                          "(each listed with its time, object and ids)")
+                                          "(each listed with its time, object and ids), MOTA, IDF1")
     q.add_argument("--pred", required=True, help="tracks CSV from etam track")
     q.add_argument("--truth", required=True, help="a recording with /truth/boxes (e.g. from etam sim objects)")
     q.add_argument("--json", action="store_true", help="machine-readable output")

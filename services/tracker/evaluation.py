@@ -173,11 +173,9 @@ def _id_true_positives(shared: dict[tuple[int, int], int]) -> int:
     one id and each id with one object, over the whole sequence (IDF1's IDTP)."""
     if not shared:
         return 0
-    objects = sorted({o for o, _ in shared})
-    idents = sorted({i for _, i in shared})
+    objects, row = np.unique([o for o, _ in shared], return_inverse=True)
+    idents, col = np.unique([i for _, i in shared], return_inverse=True)
     counts = np.zeros((len(objects), len(idents)))
-    row, col = {o: r for r, o in enumerate(objects)}, {i: c for c, i in enumerate(idents)}
-    for (o, i), n in shared.items():
-        counts[row[o], col[i]] = n
+    counts[row, col] = list(shared.values())
     rows, cols = linear_sum_assignment(-counts)
     return int(counts[rows, cols].sum())

@@ -124,4 +124,3 @@ class RecentEvents:
         """Views of the live events' times, columns and rows."""
         live = slice(self._lo, self._hi)
         return self._t[live], self._x[live], self._y[live]
-
