@@ -11,8 +11,17 @@ from services.camera.simulator import EventSimulator, ObjectsScene
 from services.camera.sources import SourceError, open_sources
 from services.messages import EVENT_DTYPE
 from services.stats import KeyCounter
-from services.tracker.objects.association import LOST, TENTATIVE, TRACKED, MultiObjectTracker, Track, iou
+from services.tracker.objects.association import (
+    LOST,
+    TENTATIVE,
+    TRACKED,
+    AssociationParams,
+    MultiObjectTracker,
+    Track,
+    iou,
+)
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
+from services.tracker.objects.motion import MotionParams, split_by_motion
 
 
 def _events(ts: list[int]) -> np.ndarray:
@@ -795,3 +804,67 @@ def test_a_track_coming_in_where_a_lost_one_may_take_it_is_reported_tentative_un
         assert new.state == TRACKED and mot.reported_state(new) == (TENTATIVE if waits else TRACKED)
         _follow(mot, 350_000, [x, 180, 6, 40], [0, 0, 0, 0], 30)  # 0.3 s on: a new target after all
         assert new.ident != 1 and mot.reported_state(new) == TRACKED
+
+
+def test_a_young_tracks_blob_that_moves_two_ways_is_split_and_the_track_keeps_its_part() -> None:
+    """Two targets first seen together are one blob and one track; once the blob's points move two ways
+    the track keeps the part its box overlaps more and the other part becomes a new track. A blob found
+    moving as one is tested again only 100 ms later, and an older track's not at all (the flow costs time;
+    `_split` looks after it)."""
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)  # the pair, one box
+    asked = []
+
+    def two_ways(det: tuple) -> np.ndarray:
+        asked.append(det)
+        x, y, w, h = det
+        return np.array([[x, y, 0.7 * w, h], [x + 0.7 * w, y, 0.3 * w, h]], np.float32)
+
+    for i in range(3):
+        tracks = mot.update(60_000 + i * 10_000, np.array([[106 + i, 100, 60, 40]], np.float32), motions=two_ways)
+    assert len(asked) == 3  # each update while the second part's track is tentative (then both are laid out)
+    first = next(t for t in tracks if t.ident == 1)
+    assert first.state == TRACKED and first.box[2] < 47  # narrowing to the bigger part (42 px), its box's
+    second = [t for t in tracks if t.ident != 1]
+    assert len(second) == 1 and second[0].hits == 3 and second[0].box[0] > first.box[0] + 30
+
+    calm = MultiObjectTracker(width=346, height=260)  # a blob found moving as one is tested again 100 ms later
+    _follow(calm, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)
+    asked.clear()
+    for i in range(12):
+        calm.update(60_000 + i * 10_000, np.array([[106 + i, 100, 60, 40]], np.float32), motions=asked.append)
+    assert len(asked) == 2 and len(calm.tracks) == 1
+
+    old = MultiObjectTracker(width=346, height=260, params=AssociationParams(motion_split_us=50_000))
+    _follow(old, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)
+    asked.clear()
+    old.update(60_000, np.array([[106, 100, 60, 40]], np.float32), motions=two_ways)
+    assert asked == [] and len(old.tracks) == 1
+
+
+def _textured_patch(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    return (rng.random((h, w)) < 0.3).astype(np.float32) * 2.0  # pixels with recent events, as a decayed image
+
+
+def test_split_by_motion_finds_two_targets_moving_apart_in_one_blob_and_none_in_one_target() -> None:
+    rng = np.random.default_rng(3)
+    a, b = _textured_patch(rng, 40, 40), _textured_patch(rng, 44, 36)
+    dt_s, va, vb = 0.04, (150.0, 0.0), (0.0, -100.0)
+
+    def frame(t_s: float, patches: list) -> np.ndarray:
+        image = np.zeros((200, 260), np.float32)
+        for patch, (x, y), (vx, vy) in patches:
+            x0, y0 = int(round(x + vx * t_s)), int(round(y + vy * t_s))
+            image[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]] = patch
+        return image
+
+    pair = [(a, (60, 80), va), (b, (100, 78), vb)]  # side by side, touching: one blob
+    earlier, now = frame(-dt_s, pair), frame(0.0, pair)
+    parts = split_by_motion(earlier, now, (60, 78, 76, 44), dt_s, MotionParams())
+    assert parts is not None
+    truth = np.array([[60, 80, 40, 40], [100, 78, 36, 44]], np.float32)
+    overlap = iou(truth, parts)
+    assert overlap.max(axis=1).min() > 0.6 and set(overlap.argmax(axis=1)) == {0, 1}
+
+    one = [(a, (60, 80), va)]
+    assert split_by_motion(frame(-dt_s, one), frame(0.0, one), (60, 80, 40, 40), dt_s, MotionParams()) is None

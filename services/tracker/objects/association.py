@@ -31,6 +31,9 @@ knew it was lost. Here:
   takes that detection whole; a detection much bigger than the one track it holds, whose events the
   track's box at its own size leaves partly unexplained beside it, holds a second target, which gets a
   detection of its own;
+- a young track's detection whose points move two ways (optical flow, see `motion.py`) holds two
+  targets that came in or were first seen together: it is split in two, the track keeping the part
+  its box overlaps more;
 - a `LOST` track is re-found under the same id when a detection of its size appears near its
   prediction before `forget_after_us`; a target coming out from behind a nearer one (a new track
   at the edge of that one's box) takes back the id of the track hidden there, by its size, as one
@@ -66,6 +69,8 @@ Layout = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Leftover = Callable[[Box, np.ndarray], tuple[np.ndarray, int, int]]
 # boxes (N x 4) -> the events in each since the last update
 Counts = Callable[[np.ndarray], np.ndarray]
+# a detection -> the boxes (2 x 4) of two targets moving apart in it, or None
+Motions = Callable[[Box], np.ndarray | None]
 
 
 @dataclass
@@ -115,6 +120,11 @@ class AssociationParams:
     split_area: float = 1.6
     split_share: float = 0.3
     split_cover: float = 0.5
+    # a confirmed track this young alone in a detection is tested for a second target moving otherwise in it (two
+    # that came in together, or were first seen together); older ones are left to `_split`: testing them too made
+    # more id switches on the simulator's dev seeds, not fewer, and cost the flow on every update
+    motion_split_us: int = 2_000_000
+    motion_retest_us: int = 100_000  # a blob found moving as one is tested again this much later (the flow is dear)
 
 
 @dataclass
@@ -135,6 +145,7 @@ class Track:
     widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     entering: bool = False  # confirmed young at a border and not (yet) known as a target that left
+    moved_as_one_us: int = -(1 << 62)  # when its blob's points were last found moving one way (see `_split_by_motion`)
 
     def full_size(self, axis: int) -> float | None:
         """Its usual width (axis 0) or height (1) in full view, if ever seen so."""
@@ -253,14 +264,17 @@ class MultiObjectTracker:
         self._next_id = 1
 
     def update(self, t_us: int, boxes: np.ndarray, fresh: Counts | None = None,
-               layout: Layout | None = None, leftover: Leftover | None = None) -> list[Track]:
+               layout: Layout | None = None, leftover: Leftover | None = None,
+               motions: Motions | None = None) -> list[Track]:
         """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known how to count the
         new events in a box since the last update, how to place tracks that share a detection (else they
-        move by prediction) and how to box the events that placed tracks leave in a detection (else a
-        detection is never split)."""
+        move by prediction), how to box the events that placed tracks leave in a detection and how to
+        find two targets moving apart in one (else a detection is never split)."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
+        # parts of detections split by motion: targets of their own, not fragments of the track beside them
+        moved_apart = self._split_by_motion(t_us, dets, pred, motions) if motions is not None else set()
         if layout is not None and leftover is not None:
             self._split(dets, pred, layout, leftover)
         inter = [[_overlap(a, b) for b in dets] for a in pred]
@@ -295,7 +309,7 @@ class MultiObjectTracker:
         pieces: dict[int, list[int]] = {ti: [di] for ti, di in assigned.items()}
         confirmed = [(ti, a) for ti, a in enumerate(pred) if live[ti] and self.tracks[ti].state == TRACKED]
         for di, det in enumerate(dets):
-            if di in used or not pred:
+            if di in used or di in moved_apart or not pred:
                 continue
             cover = [inter[ti][di] / _area(det) if live[ti] else 0.0 for ti in range(len(pred))]
             ti = max(range(len(cover)), key=cover.__getitem__)
@@ -349,6 +363,33 @@ class MultiObjectTracker:
                 self.tracks.append(Track(self._next_id, det, t_us, first_seen_us=t_us, last_seen_us=t_us))
                 self._next_id += 1
         return list(self.tracks)
+
+    def _split_by_motion(self, t_us: int, dets: list[Box], pred: list[Box], motions: Motions) -> set[int]:
+        """Splits (in place) each detection holding most of one confirmed track, a young one, whose points
+        move two ways: the part its predicted box overlaps more stays its detection, the other is added at
+        the end as a target of its own (their indices are returned). Two targets that came in together, or
+        were first seen together, form one blob and so one track; here they part as soon as they move
+        apart, not once their blobs separate (the box held both until then)."""
+        p = self.params
+        added: set[int] = set()
+        confirmed = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
+        for di, det in enumerate(dets[:]):
+            inside = [(tr, a) for tr, a in confirmed if _overlap(a, det) >= 0.5 * _area(a)]
+            if len(inside) != 1:
+                continue
+            tr, a = inside[0]
+            if t_us - tr.first_seen_us >= p.motion_split_us or t_us - tr.moved_as_one_us < p.motion_retest_us:
+                continue
+            found = motions(det)
+            if found is None:
+                tr.moved_as_one_us = t_us
+                continue
+            parts = [(b[0], b[1], b[2], b[3]) for b in found.tolist()]
+            own = 0 if _iou(parts[0], a) >= _iou(parts[1], a) else 1
+            dets[di] = parts[own]
+            dets.append(parts[1 - own])
+            added.add(len(dets) - 1)
+        return added
 
     def _split(self, dets: list[Box], pred: list[Box], layout: Layout, leftover: Leftover) -> None:
         """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose

@@ -6,12 +6,14 @@ Every stage has the variants of the seeds, chosen by `TrackerParams`:
 - detection: `contour` (occupancy clusters, seed 003's contour method), `camshift` (seed 003's
   Canny edges + CamShift per track, clusters for new targets) or `corner` (seed 003's feature
   method: corner clusters);
-- key-event sampling (seed 004) thins an update's events once they exceed `max_events`.
+- key-event sampling (seed 004) thins an update's events once they exceed `max_events`;
+- a young track's blob is split where its points move two ways (see `motion.py`).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -19,6 +21,7 @@ import numpy as np
 
 from services import events as ev_ops
 from services.messages import EVENT_DTYPE
+from services.tracker.objects import motion
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.activity import FreshCounts
 from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
@@ -26,6 +29,7 @@ from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
 from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
+from services.tracker.objects.motion import MotionParams, split_by_motion
 from services.tracker.objects.sampling import key_events
 
 FRAMES = ("decay", "adaptive")
@@ -45,6 +49,7 @@ class TrackerParams:
     adaptive: AdaptiveParams = field(default_factory=AdaptiveParams)
     association: AssociationParams = field(default_factory=AssociationParams)
     layout: LayoutParams = field(default_factory=LayoutParams)
+    motion: MotionParams = field(default_factory=MotionParams)
 
     def __post_init__(self) -> None:
         if self.frames not in FRAMES:
@@ -58,8 +63,9 @@ METHODS: dict[str, TrackerParams] = {
     "contour": TrackerParams(),
     "adaptive": TrackerParams(frames="adaptive"),
     # CamShift windows drift along the edges they climb: the young tracks born beside them are duplicates
-    # whose velocities tell nothing, folded by overlap alone
-    "camshift": TrackerParams(detector="camshift",
+    # whose velocities tell nothing, folded by overlap alone; and a window split by motion would grow a
+    # track whose own window is split again (tracks multiplied without end)
+    "camshift": TrackerParams(detector="camshift", motion=MotionParams(lag_us=0),
                               association=AssociationParams(take_whole=False, young_unlike_px_s=math.inf)),
     "corner": TrackerParams(detector="corner"),
     "keyevents": TrackerParams(max_events=1),
@@ -74,7 +80,7 @@ def method_params(name: str) -> TrackerParams:
     base = METHODS[name]
     return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
                    adaptive=replace(base.adaptive), association=replace(base.association),
-                   layout=replace(base.layout))
+                   layout=replace(base.layout), motion=replace(base.motion))
 
 
 @dataclass
@@ -102,6 +108,7 @@ class ObjectTracker:
         self.association = MultiObjectTracker(self.params.association, width, height)
         self._sampled: list[np.ndarray] = []
         self.fresh = FreshCounts(width, height)
+        self._past: deque[tuple[int, np.ndarray]] = deque()  # (t_us, image) of recent updates, for `motion`
 
     def accept(self, events: np.ndarray) -> None:
         self.fresh.accept(events)
@@ -115,10 +122,13 @@ class ObjectTracker:
             self._accept_sampled()
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
+        earlier = self._earlier(t_us, image)
+        motions = None if earlier is None else (
+            lambda det: split_by_motion(earlier[1], image, det, (t_us - earlier[0]) / 1e6, self.params.motion))
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
             layout=lambda preds, sizes: self._layout(image, preds, sizes),
-            leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent))
+            leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions)
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
@@ -128,6 +138,18 @@ class ObjectTracker:
             vels=np.array([tr.vel for tr in tracks], np.float32).reshape(-1, 2),
             states=np.array([self.association.reported_state(tr) for tr in tracks], np.uint8),
         )
+
+    def _earlier(self, t_us: int, image: np.ndarray) -> tuple[int, np.ndarray] | None:
+        """The latest past image at least `motion.lag_us` older than this one (with its time), if any; this
+        one (a copy: the frames reuse their array) kept for the updates to come."""
+        lag = self.params.motion.lag_us
+        if lag <= 0:
+            return None
+        while len(self._past) >= 2 and t_us - self._past[1][0] >= lag:
+            self._past.popleft()
+        earlier = self._past[0] if self._past and t_us - self._past[0][0] >= lag else None
+        self._past.append((t_us, image.copy()))
+        return earlier
 
     def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
         """Where the tracks sharing one blob are (their predicted boxes and own sizes in, boxes out)."""
@@ -180,6 +202,7 @@ class ObjectTracker:
         self.association.reset()
         self.fresh.reset()
         self._sampled = []
+        self._past.clear()
 
 
 def warm_up(params: TrackerParams | None = None) -> None:
@@ -203,3 +226,4 @@ def warm_up(params: TrackerParams | None = None) -> None:
         events.flags.writeable = step % 2 == 0
         tracker.accept(events)
         tracker.generate(t_us)
+    motion.warm_up()

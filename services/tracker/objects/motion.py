@@ -1,0 +1,142 @@
+"""Targets that share one blob told apart by how they move: sparse optical flow in the decayed image.
+
+Two targets that come in together, or one that passes in front of another, form one connected blob,
+and no threshold on the image alone can cut it where they meet. Their events move differently,
+though: the decayed image of a textured target translates with it, so Lucas-Kanade flow on a grid
+of points inside a blob, between the image of this update and one some 40 ms older, gives each
+point its target's velocity (to some 10 px/s on the simulator's textured targets).
+Where the velocities fall in two groups well apart, the blob holds two targets, and each group's
+points give one of them a box.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from services.tracker.objects.accumulator import to_uint8
+
+
+@dataclass
+class MotionParams:
+    lag_us: int = 40_000  # flow between an update's image and the latest one at least this much older (0: off)
+    grid_px: int = 6  # flow at points this far apart, where the image has recent events
+    least_weight: float = 0.25  # a point is sampled where the blurred decayed image is at least this
+    blur_px: float = 1.5  # the images are smoothed first: events are sparse, the flow wants gradients
+    window_px: int = 11
+    min_points: int = 10  # per group
+    min_share: float = 0.15  # of the blob's points, per group
+    min_gap_px_s: float = 40.0  # the two groups' median velocities differ by this much at least
+    separation: float = 3.0  # ... and by this many times their spread (pooled median distance to the median)
+    min_area_px: int = 600  # smaller blobs are not split
+
+
+def split_by_motion(earlier: np.ndarray, image: np.ndarray, box: np.ndarray | tuple, dt_s: float,
+                    params: MotionParams) -> np.ndarray | None:
+    """The two boxes (2 x 4) of the targets moving apart in a blob's `box`, from the decayed image
+    `dt_s` earlier; None when its points move as one (or the blob is too small to tell)."""
+    box = np.asarray(box, np.float32)
+    if box[2] * box[3] < params.min_area_px:
+        return None
+    pts, vel = point_flow(earlier, image, box, dt_s, params)
+    parts = two_motions(pts, vel, params)
+    if parts is None:
+        return None
+    lo = np.maximum(parts[:, :2], box[:2])
+    hi = np.minimum(parts[:, :2] + parts[:, 2:], box[:2] + box[2:])
+    return np.concatenate([lo, hi - lo], axis=1)
+
+
+def point_flow(earlier: np.ndarray, image: np.ndarray, box: np.ndarray, dt_s: float,
+               params: MotionParams) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N x 2, x y) on a grid inside `box` where the decayed `image` has recent events, and their
+    velocities (N x 2, px/s) from the image `dt_s` earlier; points the flow lost are left out."""
+    h, w = image.shape
+    m = params.window_px + 2
+    x0, y0 = max(int(box[0]) - m, 0), max(int(box[1]) - m, 0)
+    x1, y1 = min(int(np.ceil(box[0] + box[2])) + m, w), min(int(np.ceil(box[1] + box[3])) + m, h)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    a = cv2.GaussianBlur(image[y0:y1, x0:x1], (0, 0), params.blur_px)
+    b = cv2.GaussianBlur(earlier[y0:y1, x0:x1], (0, 0), params.blur_px)
+    g = params.grid_px
+    ys, xs = np.mgrid[int(box[1]) - y0 + g // 2:int(box[1] + box[3]) - y0:g,
+                      int(box[0]) - x0 + g // 2:int(box[0] + box[2]) - x0:g]
+    xs, ys = xs.ravel(), ys.ravel()
+    keep = (xs >= 0) & (xs < x1 - x0) & (ys >= 0) & (ys < y1 - y0)
+    xs, ys = xs[keep], ys[keep]
+    keep = a[ys, xs] >= params.least_weight
+    pts = np.stack([xs[keep], ys[keep]], axis=1).astype(np.float32)
+    if len(pts) < 2 * params.min_points:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    win = (params.window_px, params.window_px)
+    back, status, _ = cv2.calcOpticalFlowPyrLK(to_uint8(a), to_uint8(b), pts.reshape(-1, 1, 2), None,
+                                               winSize=win, maxLevel=2)
+    ok = status.ravel() == 1
+    vel = (pts - back.reshape(-1, 2)) / dt_s
+    return pts[ok] + np.float32([x0, y0]), vel[ok].astype(np.float32)
+
+
+def two_motions(pts: np.ndarray, vel: np.ndarray, params: MotionParams) -> np.ndarray | None:
+    """Two boxes (2 x 4) around the points of each group if their velocities fall in two groups well
+    apart, else None."""
+    if len(vel) < 2 * params.min_points:
+        return None
+    label = _two_groups(vel.astype(np.float64), float(max(params.min_points, params.min_share * len(vel))),
+                        float(params.min_gap_px_s), float(params.separation))
+    if label[0] < 0:
+        return None
+    half = params.grid_px / 2
+    boxes = []
+    for k in (0, 1):
+        p = pts[label == k]
+        lo, hi = np.percentile(p, 2, axis=0) - half, np.percentile(p, 98, axis=0) + half
+        boxes.append([lo[0], lo[1], hi[0] - lo[0], hi[1] - lo[1]])
+    return np.asarray(boxes, np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_groups(vel, least, min_gap, separation):  # noqa: ANN001, ANN202 - numba kernel
+    """2-means of velocities (N x 2) with medians for centres, started from the tenth of them at
+    each end of their main axis: a label (0 or 1) per point, or all -1 if the groups are not both
+    of `least` points and apart by `min_gap` and by `separation` times their pooled spread."""
+    n = len(vel)
+    label = np.full(n, -1, np.int64)
+    mx, my = np.median(vel[:, 0]), np.median(vel[:, 1])
+    cx, cy = vel[:, 0] - mx, vel[:, 1] - my
+    sxx, syy, sxy = (cx * cx).sum(), (cy * cy).sum(), (cx * cy).sum()
+    angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # the main axis of the 2 x 2 scatter
+    along = cx * np.cos(angle) + cy * np.sin(angle)
+    lo, hi = np.percentile(along, 10), np.percentile(along, 90)
+    centres = np.zeros((2, 2))
+    for k, pick in enumerate((along <= lo, along >= hi)):
+        centres[k, 0], centres[k, 1] = vel[pick, 0].mean(), vel[pick, 1].mean()
+    own = label.copy()
+    for _ in range(8):
+        for i in range(n):
+            d0 = (vel[i, 0] - centres[0, 0]) ** 2 + (vel[i, 1] - centres[0, 1]) ** 2
+            d1 = (vel[i, 0] - centres[1, 0]) ** 2 + (vel[i, 1] - centres[1, 1]) ** 2
+            own[i] = 0 if d0 <= d1 else 1
+        n1 = own.sum()
+        if n1 < least or n - n1 < least:
+            return label
+        for k in range(2):
+            members = vel[own == k]
+            centres[k, 0], centres[k, 1] = np.median(members[:, 0]), np.median(members[:, 1])
+    spread = 0.0
+    for k in range(2):
+        members = vel[own == k]
+        d = np.sqrt((members[:, 0] - centres[k, 0]) ** 2 + (members[:, 1] - centres[k, 1]) ** 2)
+        spread += np.median(d) ** 2
+    gap = np.sqrt((centres[0, 0] - centres[1, 0]) ** 2 + (centres[0, 1] - centres[1, 1]) ** 2)
+    if gap < min_gap or gap < separation * np.sqrt(spread):
+        return label
+    return own
+
+
+def warm_up() -> None:
+    """Loads the kernel (see `tracker.warm_up`): a blob big enough to test is rare in its warm-up scene."""
+    _two_groups(np.zeros((2, 2)), 1.0, 1.0, 1.0)
