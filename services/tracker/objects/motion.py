@@ -54,12 +54,13 @@ def point_flow(earlier: np.ndarray, image: np.ndarray, box: np.ndarray, dt_s: fl
                params: MotionParams) -> tuple[np.ndarray, np.ndarray]:
     """Points (N x 2, x y) on a grid inside `box` where the decayed `image` has recent events, and their
     velocities (N x 2, px/s) from the image `dt_s` earlier; points the flow lost are left out."""
+    none = np.zeros((0, 2), np.float32)
     h, w = image.shape
     m = params.window_px + 2
     x0, y0 = max(int(box[0]) - m, 0), max(int(box[1]) - m, 0)
     x1, y1 = min(int(np.ceil(box[0] + box[2])) + m, w), min(int(np.ceil(box[1] + box[3])) + m, h)
     if x1 - x0 < 8 or y1 - y0 < 8:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+        return none, none
     a = cv2.GaussianBlur(image[y0:y1, x0:x1], (0, 0), params.blur_px)
     b = cv2.GaussianBlur(earlier[y0:y1, x0:x1], (0, 0), params.blur_px)
     g = params.grid_px
@@ -70,8 +71,8 @@ def point_flow(earlier: np.ndarray, image: np.ndarray, box: np.ndarray, dt_s: fl
     xs, ys = xs[keep], ys[keep]
     keep = a[ys, xs] >= params.least_weight
     pts = np.stack([xs[keep], ys[keep]], axis=1).astype(np.float32)
-    if len(pts) < 2 * params.min_points:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    if len(pts) < 2 * params.min_points:  # too few to make two groups of
+        return none, none
     win = (params.window_px, params.window_px)
     back, status, _ = cv2.calcOpticalFlowPyrLK(to_uint8(a), to_uint8(b), pts.reshape(-1, 1, 2), None,
                                                winSize=win, maxLevel=2)
