@@ -3,8 +3,9 @@
 Two targets that come in together, or one that passes in front of another, form one connected blob,
 and no threshold on the image alone can cut it where they meet. Their events move differently,
 though: the decayed image of a textured target translates with it, so Lucas-Kanade flow on a grid
-of points inside a blob, between the image of this update and one some 40 ms older, gives each
-point its target's velocity (to some 10 px/s on the simulator's textured targets).
+of points inside a blob, between the image of this update and one some 60 ms older, gives each
+point its target's velocity (to some 5-10 px/s on the simulator's textured targets; 40 ms told
+targets apart less often, the displacement being shorter against the same error in pixels).
 Where the velocities fall in two groups well apart, the blob holds two targets, and each group's
 points give one of them a box.
 """
@@ -22,14 +23,16 @@ from services.tracker.objects.accumulator import to_uint8
 
 @dataclass
 class MotionParams:
-    lag_us: int = 40_000  # flow between an update's image and the latest one at least this much older (0: off)
+    lag_us: int = 60_000  # flow between an update's image and the latest one at least this much older (0: off)
     grid_px: int = 6  # flow at points this far apart, where the image has recent events
     least_weight: float = 0.25  # a point is sampled where the blurred decayed image is at least this
     blur_px: float = 1.5  # the images are smoothed first: events are sparse, the flow wants gradients
     window_px: int = 11
     min_points: int = 10  # per group
     min_share: float = 0.15  # of the blob's points, per group
-    min_gap_px_s: float = 40.0  # the two groups' median velocities differ by this much at least
+    # the two groups' median velocities differ by this much at least (and by `separation` times their spread, which
+    # is what decides above some 10 px/s: 40 split fewer of the simulator's pairs and made more id switches)
+    min_gap_px_s: float = 20.0
     separation: float = 3.0  # ... and by this many times their spread (pooled median distance to the median)
     min_area_px: int = 600  # smaller blobs are not split
 
