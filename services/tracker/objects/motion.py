@@ -4,8 +4,8 @@ Two targets that come in together, or one that passes in front of another, form 
 and no threshold on the image alone can cut it where they meet. Their events move differently,
 though: the decayed image of a textured target translates with it, so Lucas-Kanade flow on a grid
 of points inside a blob, between the image of this update and one some 60 ms older, gives each
-point its target's velocity (to some 5-10 px/s on the simulator's textured targets; 40 ms told
-targets apart less often, the displacement being shorter against the same error in pixels).
+point its target's velocity (to some 10 px/s at 40 ms on the simulator's textured targets; the error
+being in pixels, the longer lag gives finer velocities, and told more of its pairs apart).
 Where the velocities fall in two groups well apart, the blob holds two targets, and each group's
 points give one of them a box.
 """
@@ -30,8 +30,8 @@ class MotionParams:
     window_px: int = 11
     min_points: int = 10  # per group
     min_share: float = 0.15  # of the blob's points, per group
-    # the two groups' median velocities differ by this much at least (and by `separation` times their spread, which
-    # is what decides above some 10 px/s: 40 split fewer of the simulator's pairs and made more id switches)
+    # the two groups' median velocities differ by this much at least, and by `separation` times their spread (40 split
+    # fewer of the simulator's pairs and made more id switches; 10 changed nothing there: the spread decides)
     min_gap_px_s: float = 20.0
     separation: float = 3.0  # ... and by this many times their spread (pooled median distance to the median)
     min_area_px: int = 600  # smaller blobs are not split
