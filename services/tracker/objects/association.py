@@ -274,9 +274,11 @@ class MultiObjectTracker:
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
         # parts of detections split by motion: targets of their own, not fragments of the track beside them
-        moved_apart = self._split_by_motion(t_us, dets, pred, motions) if motions is not None else set()
+        # the confirmed tracks with their predictions, built once for both splits: whose blobs may be split
+        splittable = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
+        moved_apart = self._split_by_motion(t_us, dets, splittable, motions) if motions is not None else set()
         if layout is not None and leftover is not None:
-            self._split(dets, pred, layout, leftover)
+            self._split(dets, splittable, layout, leftover)
         inter = [[_overlap(a, b) for b in dets] for a in pred]
         ious = [[_iou(a, b, o) for b, o in zip(dets, row, strict=True)] for a, row in zip(pred, inter, strict=True)]
         live = [tr.state != LOST for tr in self.tracks]
@@ -364,7 +366,8 @@ class MultiObjectTracker:
                 self._next_id += 1
         return list(self.tracks)
 
-    def _split_by_motion(self, t_us: int, dets: list[Box], pred: list[Box], motions: Motions) -> set[int]:
+    def _split_by_motion(self, t_us: int, dets: list[Box], confirmed: list[tuple[Track, Box]],
+                         motions: Motions) -> set[int]:
         """Splits (in place) each detection holding most of one confirmed track, a young one, whose points
         move two ways: the part its predicted box overlaps more stays its detection, the other is added at
         the end as a target of its own (their indices are returned). Two targets that came in together, or
@@ -372,7 +375,6 @@ class MultiObjectTracker:
         apart, not once their blobs separate (the box held both until then)."""
         p = self.params
         added: set[int] = set()
-        confirmed = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
         for di, det in enumerate(dets[:]):
             inside = [(tr, a) for tr, a in confirmed if _overlap(a, det) >= 0.5 * _area(a)]
             if len(inside) != 1:
@@ -391,7 +393,7 @@ class MultiObjectTracker:
             added.add(len(dets) - 1)
         return added
 
-    def _split(self, dets: list[Box], pred: list[Box], layout: Layout, leftover: Leftover) -> None:
+    def _split(self, dets: list[Box], confirmed: list[tuple[Track, Box]], layout: Layout, leftover: Leftover) -> None:
         """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose
         box is clear of the borders: not a target still coming in) in two: a second target joined its
         blob (one that moved off again beside it, or came in at a border behind it). The track's box
@@ -400,7 +402,6 @@ class MultiObjectTracker:
         one (but one that stays young and moves with the other is still folded into it, see `_merge_alike`:
         a piece of its target)."""
         p = self.params
-        confirmed = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
         for di, det in enumerate(dets[:]):  # the parts added at the end are not split again
             inside = [(tr, a, inter) for tr, a in confirmed if (inter := _overlap(a, det)) > 0]
             if len(inside) != 1:
