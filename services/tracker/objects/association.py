@@ -273,9 +273,9 @@ class MultiObjectTracker:
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
-        # parts of detections split by motion: targets of their own, not fragments of the track beside them
         # the confirmed tracks with their predictions, built once for both splits: whose blobs may be split
         splittable = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
+        # parts of detections split by motion: targets of their own, not fragments of the track beside them
         moved_apart = self._split_by_motion(t_us, dets, splittable, motions) if motions is not None else set()
         if layout is not None and leftover is not None:
             self._split(dets, splittable, layout, leftover)
