@@ -5,7 +5,7 @@ and no threshold on the image alone can cut it where they meet. Their events mov
 though: the decayed image of a textured target translates with it, so Lucas-Kanade flow on a grid
 of points inside a blob, between the image of this update and one some 60 ms older, gives each
 point its target's velocity (to some 10 px/s at 40 ms on the simulator's textured targets; the error
-being in pixels, the longer lag gives finer velocities, and told more of its pairs apart).
+is in pixels, so a longer lag gives finer velocities and tells more pairs of targets apart).
 Where the velocities fall in two groups well apart, the blob holds two targets, and each group's
 points give one of them a box.
 """
