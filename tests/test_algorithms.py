@@ -376,6 +376,32 @@ def _blob_image(boxes: list[list[float]], seed: int = 0) -> np.ndarray:
     return img
 
 
+def _layout_on(img: np.ndarray, params: LayoutParams | None = None):  # noqa: ANN202 - the association's Layout
+    return lambda preds, sizes, fills: fit_layout(img, preds, params or LayoutParams(), sizes, fills)
+
+
+def test_layout_keeps_a_sparse_target_on_its_own_few_pixels() -> None:
+    """A slow target fires 3 % of its pixels (under `density`); a busy one passes in front of its right part.
+    Paying by `density`, the slow box slides update after update under the busy one's, where pixels cost
+    nothing; paying by its own usual fill, it stays."""
+    slow, busy = [50, 100, 50, 40], [90, 95, 50, 50]
+    img = np.zeros((260, 346), np.float32)
+    rng = np.random.default_rng(0)
+    img[100:140, 50:100][rng.random((40, 50)) < 0.03] = 1.0
+    img[95:145, 90:140][rng.random((50, 50)) < 0.5] = 1.0
+
+    def placed(fills: np.ndarray | None) -> np.ndarray:
+        boxes = np.float32([slow, busy])
+        for _ in range(10):  # each update starts from the last placement, as a track's prediction does
+            boxes = fit_layout(img, boxes, LayoutParams(), fills=fills)
+        return boxes
+
+    assert placed(None)[0, 0] >= slow[0] + 20
+    kept = placed(np.array([0.03, 0.5]))
+    np.testing.assert_allclose(kept[0, :2], slow[:2], atol=2)
+    np.testing.assert_allclose(kept[1, :2], busy[:2], atol=2)
+
+
 def test_layout_places_boxes_of_known_size_on_a_merged_blob() -> None:
     truth = [[100, 80, 40, 50], [125, 100, 40, 40]]  # overlapping: one blob
     img = _blob_image(truth)
@@ -426,7 +452,7 @@ def test_a_target_that_stops_beside_a_moving_one_is_held_where_it_stopped() -> N
         boxes = [a, b] if apart and i < 56 else [a] if apart else [[min(a[0], b[0]), 100, 30 + abs(a[0] - b[0]), 50]]
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
                             fresh=lambda c, moving=moving: intersection(c, moving).sum(axis=1),
-                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
+                            layout=_layout_on(img))
     by_id = {t.ident: t for t in tracks}
     assert sorted(by_id) == [1, 2] and by_id[2].state == TRACKED
     assert by_id[2].box[0] == pytest.approx(164, abs=3) and by_id[2].vel == (0.0, 0.0)  # where b stopped
@@ -461,7 +487,7 @@ def test_a_stopped_target_in_a_moving_ones_blob_is_lost_after_the_hold() -> None
         img = _blob_image([a, b] if i < 23 else [a], seed=i)
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
                             fresh=lambda c, moving=moving: intersection(c, moving).sum(axis=1),
-                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
+                            layout=_layout_on(img))
         if i == 200:  # still for 1.8 s: held where it stopped
             assert next(t for t in tracks if t.ident == 2).box[0] == pytest.approx(200, abs=3)
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
@@ -660,7 +686,7 @@ def test_tracks_sharing_a_blob_are_placed_on_its_events() -> None:
         img = _blob_image([[a_x, 100, 30, 30], [b_x, 100, 30, 30]], seed=i)
         boxes = [[a_x, 100, 30, 30], [b_x, 100, 30, 30]] if b_x - a_x > 30 else [[a_x, 100, b_x + 30 - a_x, 30]]
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
-                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, LayoutParams(), sizes))
+                            layout=_layout_on(img))
     by_id = {t.ident: t for t in tracks}
     assert sorted(by_id) == [1, 2]
     assert by_id[1].box[0] == pytest.approx(a_x, abs=2)  # on its events, not where its speed says
@@ -679,7 +705,7 @@ def test_a_second_target_joining_a_tracks_blob_gets_a_track_of_its_own() -> None
         apart = b is None or b[0] > a[0] + 36
         boxes = [a] + ([b] if b else []) if apart else [[a[0], 100, b[0] + 30 - a[0], 50]]
         tracks = mot.update(i * 10_000, np.array(boxes, np.float32),
-                            layout=lambda preds, sizes, img=img: fit_layout(img, preds, params, sizes),
+                            layout=_layout_on(img, params),
                             leftover=lambda det, placed, img=img: leftover(img, det, placed, params.recent))
         if i == 26:  # still one blob, 64 x 50 px
             first = next(t for t in tracks if t.ident == 1)

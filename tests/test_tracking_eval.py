@@ -187,7 +187,7 @@ def test_the_placement_ceiling_puts_tracks_sharing_a_blob_on_the_truth_boxes_the
     tracker = TruthPlacement(100, 60, truth)
     tracker.generate(40_000)  # the truth of time 0 holds until 50 ms
     preds = np.float32([[38, 12, 20, 20], [14, 8, 20, 20], [70, 40, 10, 10]])
-    placed = tracker._layout(np.zeros((60, 100), np.float32), preds, preds[:, 2:])
+    placed = tracker._layout(np.zeros((60, 100), np.float32), preds, preds[:, 2:], np.ones(3))
     np.testing.assert_array_equal(placed, [[40, 10, 20, 20], [10, 10, 20, 20], [70, 40, 10, 10]])
 
 

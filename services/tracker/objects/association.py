@@ -63,8 +63,9 @@ SIZE_MEMORY = 32  # measurements of a track's size kept for re-identification
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
-# predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2) -> the boxes placed on the events
-Layout = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2), the share of their pixels the
+# targets usually fire (K) -> the boxes placed on the events
+Layout = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 # a detection, the boxes placed in it -> the box of its recent pixels they leave, their count, the detection's count
 Leftover = Callable[[Box, np.ndarray], tuple[np.ndarray, int, int]]
 # boxes (N x 4) -> the events in each since the last update
@@ -108,6 +109,7 @@ class AssociationParams:
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
+    recent_updates: float = 3.0  # updates an event's pixel stays recent (tau 30 ms to weight 0.35 at 10 ms a step)
     # a track sharing a detection is tested for a stop on the part of its box the others leave, if this big
     alone_share: float = 0.5
     still_contrast: float = 0.1  # ... and stopped if that part has under this share of the busiest other's events/px
@@ -348,7 +350,8 @@ class MultiObjectTracker:
                 members = moving
             boxes_in = np.asarray([pred[ti] for ti in members], np.float32).reshape(-1, 4)
             own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
-            placed = layout(boxes_in, own) if layout is not None and members else boxes_in
+            fills = [self._fill(self.tracks[ti], box) for ti, box in zip(members, own.tolist(), strict=True)]
+            placed = layout(boxes_in, own, np.asarray(fills)) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
                 tr = self.tracks[ti]
                 if ti in hidden:  # placed, but not seen
@@ -409,7 +412,9 @@ class MultiObjectTracker:
             tr, a, inter = inside[0]
             if self._sides(a) or inter < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
                 continue
-            placed = layout(np.asarray([a], np.float32), np.asarray([tr.own_size or a[2:]], np.float32))
+            size = tr.own_size or a[2:]
+            placed = layout(np.asarray([a], np.float32), np.asarray([size], np.float32),
+                            np.asarray([self._fill(tr, size)]))
             box, n, total = leftover(det, placed)
             own, rest = tuple(placed[0].tolist()), tuple(box.tolist())
             if n and n >= p.split_share * total and _overlap(rest, own) < p.split_cover * _area(own):
@@ -562,6 +567,13 @@ class MultiObjectTracker:
         """The track's usual count of new events learns from its detection's, while it moves."""
         g = self.params.rate_gain
         tr.rate = new_events if tr.rate == 0 else (1 - g) * tr.rate + g * new_events
+
+    def _fill(self, tr: Track, size: tuple[float, float] | list[float]) -> float:
+        """The share of the pixels of its box (of `size`) that a track's target usually has recent (1 while
+        its rate is unknown: no event counts, or none yet)."""
+        if tr.rate <= 0:
+            return 1.0
+        return min(1.0, self.params.recent_updates * tr.rate / max(size[0] * size[1], 1.0))
 
     def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float],
                         alone: tuple[list[Box], float], fresh: Counts) -> bool:

@@ -9,6 +9,11 @@ behind a nearer one is placed by the part of it still in view, and one wholly in
 stays at its prediction, held there by a small pull. Beyond the image nothing fires, so a box
 whose target is leaving goes on out with it, instead of being held inside on the other's events.
 
+A slow or faint target fires few of its pixels, maybe fewer than `density`: then its own pixels
+would cost more than they pay, and its box would rather slide under a busier neighbour's, where
+pixels count for nothing (traced on a slowly moving target that a faster one passed in front of).
+So each box pays from its own target's expected share of recent pixels, if that is the lower.
+
 A size known from before the merge can be wrong (two targets that came in together, a box that
 held a trail), and a blob may last seconds; so each edge may also move a pixel a round, against a
 pull towards the size the track last measured on its own, which keeps right sizes from drifting.
@@ -33,15 +38,20 @@ class LayoutParams:
     rounds: int = 2
     resize_px: int = 1  # each edge moves at most this far per round (0: sizes kept)
     size_pull: float = 0.2  # cost of a relative size change from the track's own, per px^2 of box
+    sparse_share: float = 0.5  # a box pays from this share of its target's expected fill where below `density`
 
 
 def fit_layout(image: np.ndarray, boxes: np.ndarray, params: LayoutParams,
-               sizes: np.ndarray | None = None) -> np.ndarray:
+               sizes: np.ndarray | None = None, fills: np.ndarray | None = None) -> np.ndarray:
     """The boxes (K x 4: x, y, w, h) moved onto the recent pixels of a decayed image, their sizes
-    pulled towards `sizes` (K x 2: w, h; the boxes' own if not given)."""
+    pulled towards `sizes` (K x 2: w, h; the boxes' own if not given), each paying for empty pixels
+    by `density` or by its share of `fills` (K: the share of their pixels the targets usually fire), the lower."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
     own = boxes[:, 2:] if sizes is None else np.asarray(sizes, np.float64).reshape(-1, 2)
-    return _placed(image, boxes, own, np.float32(params.recent), np.float32(params.density), params.reach_px,
+    density = np.full(len(boxes), params.density, np.float32)
+    if fills is not None:
+        density = np.minimum(density, params.sparse_share * np.asarray(fills, np.float32))
+    return _placed(image, boxes, own, np.float32(params.recent), density, params.reach_px,
                    params.pull, params.rounds, params.resize_px, params.size_pull)
 
 
@@ -87,7 +97,7 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
 @numba.njit(cache=True, nogil=True)
 def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, resize, size_pull):  # noqa: ANN001, ANN202 - numba kernel
     """Coordinate ascent of the boxes `pos` and `size` (in place): each box in turn takes the shift
-    within `reach` (and the region) that best covers the pixels no other box covers, less `pull`
+    within `reach` (and the region) that best covers the pixels no other box covers (at its `density`), less `pull`
     times its squared distance from `pred`; then each of its edges the move within `resize` that
     does, less `size_pull` times its squared relative size change from `own`, per px^2 of box.
     One integral image of recent pixels (int32: exact, and lighter than the gains' floats) serves every
@@ -114,7 +124,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
             for ya in range(max(pos[k, 1] - reach, 0), min(pos[k, 1] + reach, h - size[k, 1]) + 1):
                 for xa in range(max(pos[k, 0] - reach, 0), min(pos[k, 0] + reach, w - size[k, 0]) + 1):
                     ex, ey = xa - pred[k, 0], ya - pred[k, 1]
-                    score = (_cover(total, density, pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
+                    score = (_cover(total, density[k], pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
                              - pull * (ex * ex + ey * ey))
                     if score > best:
                         best, bx, by = score, xa, ya
@@ -128,7 +138,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
                     if bw < 1 or bh < 1 or rect[0] < 0 or rect[1] < 0 or rect[2] > w or rect[3] > h:
                         continue
                     dw, dh = bw / own[k, 0] - 1.0, bh / own[k, 1] - 1.0
-                    score = (_cover(total, density, pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
+                    score = (_cover(total, density[k], pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
                              - size_pull * own[k, 0] * own[k, 1] * (dw * dw + dh * dh))
                     if score > best:
                         best, best_at = score, v

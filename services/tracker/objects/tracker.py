@@ -127,7 +127,7 @@ class ObjectTracker:
             lambda det: split_by_motion(earlier[1], image, det, (t_us - earlier[0]) / 1e6, self.params.motion))
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
-            layout=lambda preds, sizes: self._layout(image, preds, sizes),
+            layout=lambda preds, sizes, fills: self._layout(image, preds, sizes, fills),
             leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions)
         self.fresh.reset()
         return TrackSet(
@@ -151,9 +151,9 @@ class ObjectTracker:
         self._past.append((t_us, image.copy()))
         return earlier
 
-    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-        """Where the tracks sharing one blob are (their predicted boxes and own sizes in, boxes out)."""
-        return fit_layout(image, boxes, self.params.layout, sizes)
+    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray) -> np.ndarray:
+        """Where the tracks sharing one blob are (their predicted boxes, own sizes and usual fills in, boxes out)."""
+        return fit_layout(image, boxes, self.params.layout, sizes, fills)
 
     def _accept_sampled(self) -> None:
         """This update's events, thinned to key events (each weighted by the events of its cell)
