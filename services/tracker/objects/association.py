@@ -348,10 +348,8 @@ class MultiObjectTracker:
                     else:
                         moving.append(ti)
                 members = moving
-            boxes_in = np.asarray([pred[ti] for ti in members], np.float32).reshape(-1, 4)
-            own = np.asarray([self.tracks[ti].own_size or pred[ti][2:] for ti in members], np.float32)
-            fills = [self._fill(self.tracks[ti], box) for ti, box in zip(members, own.tolist(), strict=True)]
-            placed = layout(boxes_in, own, np.asarray(fills)) if layout is not None and members else boxes_in
+            boxes_in, own, fills = self._layout_inputs([(self.tracks[ti], pred[ti]) for ti in members])
+            placed = layout(boxes_in, own, fills) if layout is not None and members else boxes_in
             for ti, box in zip(members, placed.tolist(), strict=True):
                 tr = self.tracks[ti]
                 if ti in hidden:  # placed, but not seen
@@ -412,9 +410,7 @@ class MultiObjectTracker:
             tr, a, inter = inside[0]
             if self._sides(a) or inter < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
                 continue
-            size = tr.own_size or a[2:]
-            placed = layout(np.asarray([a], np.float32), np.asarray([size], np.float32),
-                            np.asarray([self._fill(tr, size)]))
+            placed = layout(*self._layout_inputs([(tr, a)]))
             box, n, total = leftover(det, placed)
             own, rest = tuple(placed[0].tolist()), tuple(box.tolist())
             if n and n >= p.split_share * total and _overlap(rest, own) < p.split_cover * _area(own):
@@ -568,12 +564,15 @@ class MultiObjectTracker:
         g = self.params.rate_gain
         tr.rate = new_events if tr.rate == 0 else (1 - g) * tr.rate + g * new_events
 
-    def _fill(self, tr: Track, size: tuple[float, float] | list[float]) -> float:
-        """The share of the pixels of its box (of `size`) that a track's target usually has recent (1 while
-        its rate is unknown: no event counts, or none yet)."""
-        if tr.rate <= 0:
-            return 1.0
-        return min(1.0, self.params.recent_updates * tr.rate / max(size[0] * size[1], 1.0))
+    def _layout_inputs(self, placing: list[tuple[Track, Box]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What `Layout` takes for tracks with their predicted boxes: the boxes, the sizes the tracks measured on
+        their own (else their boxes'), and the share of those pixels each target usually has recent (1 while its
+        rate is unknown: no event counts, or none yet)."""
+        boxes = np.asarray([a for _, a in placing], np.float32).reshape(-1, 4)
+        sizes = np.asarray([tr.own_size or a[2:] for tr, a in placing], np.float32).reshape(-1, 2)
+        rates = np.asarray([tr.rate for tr, _ in placing], np.float64)
+        fills = np.minimum(self.params.recent_updates * rates / np.maximum(sizes.prod(axis=1), 1.0), 1.0)
+        return boxes, sizes, np.where(rates > 0, fills, 1.0)
 
     def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float],
                         alone: tuple[list[Box], float], fresh: Counts) -> bool:
