@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import filters, latency, playback, readers, tracking, transport, writers
+from benchmarks import filters, latency, mapping, playback, readers, tracking, transport, writers
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -39,6 +39,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "tracker": tracking.speed,
     "tracking": tracking.run,
     "tracking-held-out": tracking.held_out,
+    "mapping": mapping.run,
     "latency": latency.run,
     "simulator": _simulator,
 }

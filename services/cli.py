@@ -219,6 +219,45 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_map(args: argparse.Namespace) -> int:
+    from services.mapper.keyframes import KeyframeParams
+    from services.mapper.offline import build_map
+    from services.mapper.sweep import SweepParams
+
+    for name in ("input", "poses"):
+        if getattr(args, name) and not Path(getattr(args, name)).exists():
+            raise config.ConfigError(f"{getattr(args, name)}: no such file")
+    try:
+        near, far = (float(v) for v in args.depth_range.split(","))
+    except ValueError:
+        raise config.ConfigError(f"--depth-range takes MIN,MAX in metres, got {args.depth_range!r}") from None
+    if not 0 < near < far or args.planes < 3:
+        raise config.ConfigError(f"--depth-range needs 0 < MIN < MAX (got {args.depth_range}) and --planes >= 3 "
+                                 f"(got {args.planes})")
+    params = KeyframeParams(SweepParams(planes=args.planes, z_min_m=near, z_max_m=far))
+    summary = build_map(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None, params,
+                        progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['points']} map points from {summary['keyframes']} "
+          f"keyframes ({summary['events']} events, {summary['poses']} poses) to {args.out}")
+    return 0
+
+
+def _print_scores(scores: dict) -> None:
+    for k, v in scores.items():
+        print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
+
+
+def _cmd_eval_map(args: argparse.Namespace) -> int:
+    from services.mapper.offline import eval_map
+
+    for path in (args.cloud, args.truth):
+        if not Path(path).exists():
+            raise config.ConfigError(f"{path}: no such file")
+    scores = eval_map(Path(args.cloud), Path(args.truth))
+    print(json.dumps(scores)) if args.json else _print_scores(scores)
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from services.tracker.offline import eval_tracking
 
@@ -227,8 +266,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         print(json.dumps(scores))
         return 0
     events = scores.pop("id_switch_events")
-    for k, v in scores.items():
-        print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
+    _print_scores(scores)
     for e in events:  # where to look: the time, the truth object, the track ids before and after
         print(f"{'id switch':>30}: {e['t_us'] / 1e6:.3f} s, object {e['object']}: track {e['from_id']} -> {e['to_id']}")
     return 0
@@ -369,6 +407,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 
+    p = sub.add_parser("map", help="semi-dense 3D map of a recording (EMVS space sweep) into a PLY point cloud")
+    p.add_argument("input", help="any readable event file")
+    p.add_argument("--poses", metavar="TRAJ.tum", help="camera poses (TUM: t tx ty tz qx qy qz qw, T_world_cam); "
+                                                        "default: the file's truth poses")
+    p.add_argument("--out", default="cloud.ply", help="PLY to write (default cloud.ply)")
+    p.add_argument("--depth-range", default="0.5,8", metavar="MIN,MAX",
+                   help="nearest and farthest depth the sweep looks at, m (default 0.5,8)")
+    p.add_argument("--planes", type=int, default=100, help="depth planes of the sweep (default 100)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
+    p.set_defaults(func=_cmd_map)
+
     p = sub.add_parser("eval", help="score results against ground truth")
     kinds = p.add_subparsers(dest="kind", required=True, metavar="KIND")
     q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches "
@@ -377,6 +426,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--truth", required=True, help="a recording with /truth/boxes (e.g. from etam sim objects)")
     q.add_argument("--json", action="store_true", help="machine-readable output")
     q.set_defaults(func=_cmd_eval)
+    q = kinds.add_parser("map", help="depth errors of a map's points against truth depth (mean, median, share "
+                                     "within 5 %%), and the share of truth edge pixels it covers")
+    q.add_argument("--cloud", required=True, help="PLY map from etam map")
+    q.add_argument("--truth", required=True, help="a recording with /truth/depth and /truth/poses (etam sim 6dof)")
+    q.add_argument("--json", action="store_true", help="machine-readable output")
+    q.set_defaults(func=_cmd_eval_map)
 
     p = sub.add_parser("info", help="sensor size, events, duration, rate, polarity, IMU and truth of a file")
     p.add_argument("file", help="an event file or ECD folder")

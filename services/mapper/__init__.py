@@ -1,0 +1,1 @@
+"""Mapper: semi-dense 3D maps from events and camera poses (seed 001's EMVS space sweep)."""

@@ -1,0 +1,66 @@
+"""The global map: keyframes' points fused on a voxel grid, with a cap on its size.
+
+Each voxel keeps the mean of the points that fell in it, how many did, and the last keyframe that saw
+it. Points of several keyframes on one surface merge instead of piling up; a map over its cap
+forgets the voxels seen longest ago, so memory stays bounded on a long flight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class VoxelMap:
+    def __init__(self, voxel_m: float = 0.03, max_points: int = 1_000_000) -> None:
+        self.voxel_m, self.max_points = voxel_m, max_points
+        self._keys = np.zeros(0, np.int64)
+        self._sums = np.zeros((0, 3), np.float64)
+        self._counts = np.zeros(0, np.int64)
+        self._conf = np.zeros(0, np.float32)
+        self._keyframe = np.zeros(0, np.int64)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def _key(self, points: np.ndarray) -> np.ndarray:
+        """One int64 per voxel: 21 bits per axis (+-1 million voxels from the origin)."""
+        cell = np.floor(points / self.voxel_m).astype(np.int64) + (1 << 20)
+        cell = np.clip(cell, 0, (1 << 21) - 1)
+        return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+
+    def add(self, points: np.ndarray, confidence: np.ndarray, keyframe: int) -> np.ndarray:
+        """Fuses points (N x 3, world) seen by `keyframe`; the voxels' new means of those it touched."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        if not len(points):
+            return np.zeros((0, 3), np.float32)
+        keys = np.concatenate([self._keys, self._key(points)])
+        uniq, inverse = np.unique(keys, return_inverse=True)
+        n = len(uniq)
+        sums = np.zeros((n, 3))
+        np.add.at(sums, inverse, np.vstack([self._sums, points]))
+        counts = np.bincount(inverse, weights=np.concatenate([self._counts, np.ones(len(points))]),
+                             minlength=n).astype(np.int64)
+        conf = np.zeros(n, np.float32)
+        np.maximum.at(conf, inverse, np.concatenate([self._conf, np.asarray(confidence, np.float32)]))
+        last = np.zeros(n, np.int64)
+        np.maximum.at(last, inverse, np.concatenate([self._keyframe, np.full(len(points), keyframe)]))
+        self._keys, self._sums, self._counts, self._conf, self._keyframe = uniq, sums, counts, conf, last
+        touched = np.unique(inverse[len(keys) - len(points):])
+        new = (sums[touched] / counts[touched, None]).astype(np.float32)
+        if n > self.max_points:
+            self._evict(n - self.max_points)
+        return new
+
+    def _evict(self, excess: int) -> None:
+        """Forgets the `excess` voxels whose last keyframe is oldest."""
+        keep = np.sort(np.argsort(self._keyframe, kind="stable")[excess:])
+        self._keys, self._sums, self._counts = self._keys[keep], self._sums[keep], self._counts[keep]
+        self._conf, self._keyframe = self._conf[keep], self._keyframe[keep]
+
+    def points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The map: points (N x 3 float32), their observation counts, best peak heights, last keyframes."""
+        return ((self._sums / np.maximum(self._counts, 1)[:, None]).astype(np.float32), self._counts.copy(),
+                self._conf.copy(), self._keyframe.copy())
+
+    def reset(self) -> None:
+        self.__init__(self.voxel_m, self.max_points)

@@ -1,0 +1,134 @@
+"""Offline mapping commands: `etam map` (a recording and poses to a PLY cloud) and `etam eval map`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from services.camera.filters import Undistort
+from services.camera.formats import FormatError, open_recording
+from services.mapper.cloud import VoxelMap
+from services.mapper.evaluation import coverage, depth_errors, depth_scores, project
+from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
+from services.mapper.ply import read_ply, write_ply
+from services.mapper.trajectory import Trajectory, read_tum
+
+EDGE_WINDOW_US = 10_000  # truth edge pixels: those that fired at least twice this near a scored frame's time
+EDGE_EVENTS = 2
+
+
+def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeParams | None = None,
+              voxel_m: float = 0.03, progress: bool = True) -> dict[str, Any]:
+    """Sweeps a recording's events into keyframes with the poses of `poses` (a TUM file) or the file's
+    own truth poses, fuses them into a voxel map and writes it as PLY with the keyframes' times and poses."""
+    keyframes: list[Keyframe] = []
+    cloud = VoxelMap(voxel_m)
+    n_events = 0
+    with open_recording(src) as rec:
+        if poses is not None:
+            trajectory = Trajectory(read_tum(str(poses)))
+        elif rec.truth.poses is not None:
+            trajectory = Trajectory(rec.truth.poses)
+        else:
+            raise FormatError(src, "no poses to map with: give --poses traj.tum (e.g. from etam odom), "
+                              "or a recording with /truth/poses")
+        K = rec.K_or_default()
+        cal = rec.calibration
+        undistort = Undistort(rec.width, rec.height, K, cal.dist_model, cal.dist) \
+            if cal is not None and cal.dist_model != "none" and np.any(cal.dist) else None
+        mapper = KeyframeMapper(K, rec.width, rec.height, params)
+        with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
+            for chunk in rec.chunks():
+                bar.update(len(chunk))
+                t = chunk["t"]
+                chunk = chunk[(t >= trajectory.start_us) & (t <= trajectory.end_us)]  # poses are not extrapolated
+                if undistort is not None:
+                    chunk = undistort(chunk)
+                n_events += len(chunk)
+                for kf in mapper.add(chunk, trajectory):
+                    cloud.add(kf.points, kf.confidence, len(keyframes))
+                    keyframes.append(kf)
+            last = mapper.flush(trajectory)
+            if last is not None:
+                cloud.add(last.points, last.confidence, len(keyframes))
+                keyframes.append(last)
+    points, counts, conf, which = cloud.points()
+    comments = [f"etam map of {src.name}: voxel {voxel_m} m; keyframe lines: index t_us tx ty tz qx qy qz qw"]
+    for i, kf in enumerate(keyframes):
+        pose = (*kf.p, *Rotation.from_matrix(kf.R).as_quat())
+        comments.append(f"keyframe {i} {kf.t_us} " + " ".join(f"{v:.9g}" for v in pose))
+    write_ply(out, points, {"confidence": conf, "observations": counts.astype(np.uint32),
+                            "keyframe": which.astype(np.uint32)}, comments)
+    return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(keyframes),
+            "points": len(points), "poses": str(poses) if poses else "truth"}
+
+
+def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A map from `etam map`: its points and, per point, the time (us) of the keyframe that last saw it."""
+    points, fields, comments = read_ply(path)
+    times = {int(w[1]): int(w[2]) for c in comments if len(w := c.split()) >= 3 and w[0] == "keyframe"}
+    if "keyframe" not in fields or not times:
+        raise FormatError(path, "not a map from etam map (no keyframe property or keyframe comments)")
+    missing = set(np.unique(fields["keyframe"]).tolist()) - set(times)
+    if missing:
+        raise FormatError(path, f"points of keyframes {sorted(missing)[:5]} that no comment line describes")
+    return points, np.array([times[k] for k in fields["keyframe"].tolist()], np.int64)
+
+
+def eval_map(cloud: Path, truth: Path) -> dict[str, Any]:
+    """Depth errors of a map's points against a recording's truth depth maps, and the share of the
+    truth frames' edge pixels (see `EDGE_WINDOW_US`) that the map covers."""
+    points, point_t = read_map(cloud)
+    with open_recording(truth) as rec:
+        if rec.truth.depth_t is None or rec.truth.poses is None:
+            raise FormatError(truth, "no truth depth maps and poses (/truth/depth, /truth/poses) to score a map")
+        trajectory, depth_t, K = Trajectory(rec.truth.poses), np.asarray(rec.truth.depth_t), rec.K_or_default()
+        maps: dict[int, np.ndarray] = {}
+
+        def depth_map(k: int) -> np.ndarray:
+            if k not in maps:
+                maps[k] = np.asarray(rec.truth.depth_maps[k], np.float32)
+            return maps[k]
+
+        errors, true, frames = depth_errors(points, point_t, trajectory, depth_t, depth_map, K)
+        used = np.unique(frames)
+        finite = np.concatenate([depth_map(k)[np.isfinite(depth_map(k))] for k in used]) if len(used) else np.zeros(1)
+        lo, hi = np.percentile(finite, [1, 99])
+        scores = depth_scores(errors, true, float(hi - lo))
+        edges = _edge_pixels(rec, depth_t[used])
+        covered = [coverage(_on_surface(points, trajectory, int(depth_t[k]), K, depth_map(k)), e)
+                   for k, e in zip(used, edges, strict=True)]
+    weights = [e.sum() for e in edges]
+    scores["completeness"] = float(np.average(covered, weights=weights)) if covered and sum(weights) else float("nan")
+    return {"cloud": str(cloud), "truth": str(truth), "points": len(points), "depth_range_m": float(hi - lo),
+            "frames_scored": len(used), **scores}
+
+
+def _on_surface(points: np.ndarray, trajectory: Trajectory, t_us: int, K: np.ndarray, dmap: np.ndarray) -> np.ndarray:
+    """Pixels (M x 2) where the points land in the true view at `t_us` within 5 % of the true depth there."""
+    R, p = (a[0] for a in trajectory.at(t_us))
+    u, v, z, true = project(points, R, p, K, dmap)
+    ok = np.abs(z - true) <= 0.05 * true
+    return np.stack([u[ok], v[ok]], axis=1)
+
+
+def _edge_pixels(rec, times_us: np.ndarray) -> list[np.ndarray]:  # noqa: ANN001 - an open Recording
+    """Per time: the pixels that fired at least `EDGE_EVENTS` times within `EDGE_WINDOW_US` of it (what
+    an event camera sees as edges then), in one pass over the file."""
+    counts = [np.zeros((rec.height, rec.width), np.int32) for _ in times_us]
+    if not len(times_us):
+        return []
+    first, last = times_us.min() - EDGE_WINDOW_US, times_us.max() + EDGE_WINDOW_US
+    for chunk in rec.chunks():
+        if not len(chunk) or chunk["t"][-1] < first:
+            continue
+        if chunk["t"][0] > last:
+            break
+        for i, t in enumerate(times_us):
+            sel = chunk[np.abs(chunk["t"] - t) <= EDGE_WINDOW_US]
+            np.add.at(counts[i], (sel["y"].astype(np.int64), sel["x"].astype(np.int64)), 1)
+    return [c >= EDGE_EVENTS for c in counts]
