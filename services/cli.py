@@ -50,6 +50,12 @@ def _zenoh_settings(args: argparse.Namespace) -> config.ZenohSettings:
     return settings
 
 
+def _sweep_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--depth-range", default="0.5,8", metavar="MIN,MAX",
+                   help="nearest and farthest depth the sweep looks at, m (default 0.5,8)")
+    p.add_argument("--planes", type=int, default=100, help="depth planes of the sweep (default 100)")
+
+
 def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - ServiceOptions
     from services.runtime import ServiceOptions
 
@@ -85,10 +91,20 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
     return TrackerService(_service_options(args, "objects"), method_params(args.method), sizes=sizes).run()
 
 
+def _cmd_mapper(args: argparse.Namespace) -> int:
+    from services.mapper.service import MapperService
+
+    return MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses).run()
+
+
 def _cmd_web(args: argparse.Namespace) -> int:
     from web.service import WebService
 
     return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
+
+
+# sources whose truth poses the mapper maps with in `etam up`, until the tracker's ego-motion gives poses of any
+MAPPED_SIMS = ("sim:6dof", "sim:stereo")
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -99,7 +115,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     opts = UpOptions(
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
-        log_level=args.log_level,
+        log_level=args.log_level, services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS else ())),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
                      *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
@@ -219,14 +235,11 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_map(args: argparse.Namespace) -> int:
+def _map_params(args: argparse.Namespace):  # noqa: ANN202 - KeyframeParams
+    """The sweep's settings from `--depth-range` and `--planes`; ConfigError naming a bad one."""
     from services.mapper.keyframes import KeyframeParams
-    from services.mapper.offline import build_map
     from services.mapper.sweep import SweepParams
 
-    for name in ("input", "poses"):
-        if getattr(args, name) and not Path(getattr(args, name)).exists():
-            raise config.ConfigError(f"{getattr(args, name)}: no such file")
     try:
         near, far = (float(v) for v in args.depth_range.split(","))
     except ValueError:
@@ -234,9 +247,17 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if not 0 < near < far or args.planes < 3:
         raise config.ConfigError(f"--depth-range needs 0 < MIN < MAX (got {args.depth_range}) and --planes >= 3 "
                                  f"(got {args.planes})")
-    params = KeyframeParams(SweepParams(planes=args.planes, z_min_m=near, z_max_m=far))
-    summary = build_map(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None, params,
-                        progress=not args.json)
+    return KeyframeParams(SweepParams(planes=args.planes, z_min_m=near, z_max_m=far))
+
+
+def _cmd_map(args: argparse.Namespace) -> int:
+    from services.mapper.offline import build_map
+
+    for name in ("input", "poses"):
+        if getattr(args, name) and not Path(getattr(args, name)).exists():
+            raise config.ConfigError(f"{getattr(args, name)}: no such file")
+    summary = build_map(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None,
+                        _map_params(args), progress=not args.json)
     print(json.dumps(summary) if args.json else f"wrote {summary['points']} map points from {summary['keyframes']} "
           f"keyframes ({summary['events']} events, {summary['poses']} poses) to {args.out}")
     return 0
@@ -361,6 +382,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "M for every target, ID=M for one track id; repeatable")
     p.set_defaults(func=_cmd_tracker)
 
+    p = sub.add_parser("mapper", help="run the mapper service alone (semi-dense map from events and poses)")
+    _zenoh_flags(p)
+    p.add_argument("--name", help="mapper name in keys (default map)")
+    p.add_argument("--cam", default="cam0", help="the camera whose events it maps (default cam0)")
+    p.add_argument("--poses", default="ego", choices=("ego", "truth"),
+                   help="camera poses: the tracker's ego pose (default), or the camera's truth pose (simulator)")
+    _sweep_flags(p)
+    p.set_defaults(func=_cmd_mapper)
+
     p = sub.add_parser("web", help="run the dashboard service alone")
     _zenoh_flags(p)
     p.add_argument("--name", help="name in keys (default web)")
@@ -412,9 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", metavar="TRAJ.tum", help="camera poses (TUM: t tx ty tz qx qy qz qw, T_world_cam); "
                                                         "default: the file's truth poses")
     p.add_argument("--out", default="cloud.ply", help="PLY to write (default cloud.ply)")
-    p.add_argument("--depth-range", default="0.5,8", metavar="MIN,MAX",
-                   help="nearest and farthest depth the sweep looks at, m (default 0.5,8)")
-    p.add_argument("--planes", type=int, default=100, help="depth planes of the sweep (default 100)")
+    _sweep_flags(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_map)
 

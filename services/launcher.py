@@ -228,7 +228,7 @@ def _children(opts: UpOptions) -> list[Child]:
     common = ["--rig", opts.rig, "--connect", _local_endpoint(opts.listen), "--log-level", opts.log_level]
     out = []
     for name in opts.services:
-        extra = ["--source", opts.source, *opts.camera_args] if name == "camera" else []
+        extra = {"camera": ["--source", opts.source, *opts.camera_args], "mapper": ["--poses", "truth"]}.get(name, [])
         out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra]))
     if opts.web:
         out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)],

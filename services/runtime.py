@@ -24,12 +24,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, TypeVar
 
+import numpy as np
 import psutil
 import zenoh
 
 from services import keys
 from services.config import ZenohSettings
-from services.messages import Command, Message, MessageError, Reply, Stats, decode
+from services.messages import CameraInfo, Command, Message, MessageError, Reply, Stats, decode
 from services.stats import KeyCounter
 
 log = logging.getLogger(__name__)
@@ -307,6 +308,31 @@ class Service:
             loop.call_soon_threadsafe(run)
 
         self._declared.append(self._session().declare_queryable(keyexpr, answer))
+
+    async def follow_intrinsics(self, cam: str, known: dict[str, Any], missing: Callable[[], bool]) -> None:
+        """Keeps `known` (camera name -> K, 3 x 3) up to date from the CameraInfo of the rig's cameras
+        matching `cam`, and asks for it (every camera answers) four times a second while `missing()`."""
+        infos = keys.key(self.rig, "camera", cam, "info")
+        updates = self.subscribe(infos, CameraInfo, policy="latest")
+
+        def keep(key: str, msg: Message) -> None:
+            parsed = keys.parse(key)
+            if isinstance(msg, CameraInfo) and parsed:
+                known[parsed[2]] = np.asarray(msg.K, np.float64).reshape(3, 3)
+
+        async def ask() -> None:
+            while True:
+                if missing():
+                    for key, msg in await self.query(infos, CameraInfo, timeout_s=0.5):
+                        keep(key, msg)
+                await asyncio.sleep(0.25)
+
+        asker = asyncio.ensure_future(ask())
+        try:
+            async for key, msg in updates:
+                keep(key, msg)
+        finally:
+            asker.cancel()
 
     # ------------------------------------------------------------------------ to override --
     async def main(self) -> None:

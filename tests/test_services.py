@@ -191,3 +191,32 @@ def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str
     finally:
         plugin.terminate()
         plugin.wait(10)
+
+
+def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
+    """camera (sim:6dof) -> mapper --poses truth: keyframe points are published, the whole map is
+    answered, `save` writes a PLY that `etam eval map` could read, `reset` empties it."""
+    from services.mapper.ply import read_map
+    from services.messages import PointCloud
+
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", "--source", "sim:6dof", *common), spawn("mapper", "--poses", "truth", *common), \
+            client_session(router) as s:
+        points = Collector(s, f"etam/{rig}/mapper/map/points")
+        first = wait_for(lambda: points.of(PointCloud), 90, "a keyframe's points")[0]
+        assert len(first.points) > 50 and first.keyframe is not None
+        assert np.all(np.isfinite(first.points)) and 0.3 < float(np.median(first.points[:, 2])) < 8
+        whole = _query(s, f"etam/{rig}/mapper/map/all")
+        assert isinstance(whole, PointCloud) and len(whole.points) >= len(first.points)
+        cmd = f"etam/{rig}/mapper/map/cmd"
+        path = tmp_path / "map.ply"
+        saved = _query(s, cmd, Command(op="save", args={"path": str(path)}))
+        assert saved.ok and saved.result["points"] >= len(whole.points)
+        pts, times = read_map(path)
+        assert len(pts) == saved.result["points"] and np.all(times > 0)
+        assert not _query(s, cmd, Command(op="save")).ok  # no path: an error, not a crash
+        assert _query(s, cmd, Command(op="reset")).ok
+        after = _query(s, f"etam/{rig}/mapper/map/all")
+        assert len(after.points) < len(whole.points)
+        pong = _query(s, cmd, Command(op="ping"))
+        assert pong.ok and pong.result["poses"] == "truth"

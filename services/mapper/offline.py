@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from services.camera.filters import Undistort
@@ -14,7 +13,7 @@ from services.camera.formats import FormatError, open_recording
 from services.mapper.cloud import VoxelMap
 from services.mapper.evaluation import coverage, depth_errors, depth_scores, project
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
-from services.mapper.ply import read_ply, write_ply
+from services.mapper.ply import read_map, write_map
 from services.mapper.trajectory import Trajectory, read_tum
 
 EDGE_WINDOW_US = 10_000  # truth edge pixels: those that fired at least twice this near a scored frame's time
@@ -56,27 +55,9 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
             if last is not None:
                 cloud.add(last.points, last.confidence, len(keyframes))
                 keyframes.append(last)
-    points, counts, conf, which = cloud.points()
-    comments = [f"etam map of {src.name}: voxel {voxel_m} m; keyframe lines: index t_us tx ty tz qx qy qz qw"]
-    for i, kf in enumerate(keyframes):
-        pose = (*kf.p, *Rotation.from_matrix(kf.R).as_quat())
-        comments.append(f"keyframe {i} {kf.t_us} " + " ".join(f"{v:.9g}" for v in pose))
-    write_ply(out, points, {"confidence": conf, "observations": counts.astype(np.uint32),
-                            "keyframe": which.astype(np.uint32)}, comments)
+    n_points = write_map(out, cloud, keyframes, f"etam map of {src.name}: voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(keyframes),
-            "points": len(points), "poses": str(poses) if poses else "truth"}
-
-
-def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A map from `etam map`: its points and, per point, the time (us) of the keyframe that last saw it."""
-    points, fields, comments = read_ply(path)
-    times = {int(w[1]): int(w[2]) for c in comments if len(w := c.split()) >= 3 and w[0] == "keyframe"}
-    if "keyframe" not in fields or not times:
-        raise FormatError(path, "not a map from etam map (no keyframe property or keyframe comments)")
-    missing = set(np.unique(fields["keyframe"]).tolist()) - set(times)
-    if missing:
-        raise FormatError(path, f"points of keyframes {sorted(missing)[:5]} that no comment line describes")
-    return points, np.array([times[k] for k in fields["keyframe"].tolist()], np.int64)
+            "points": n_points, "poses": str(poses) if poses else "truth"}
 
 
 def eval_map(cloud: Path, truth: Path) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Point clouds as PLY files (DESIGN.md section 5): binary little-endian written, binary or ASCII read.
+"""Point clouds and maps as PLY files (DESIGN.md section 5): binary little-endian written, binary or ASCII read.
 
 Per-vertex properties beyond x, y, z travel as further columns (colours, confidence, the keyframe
 a point was last seen from); the keyframes' times and poses as `comment keyframe` header lines, so
@@ -10,6 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from services.mapper.cloud import VoxelMap
+from services.mapper.keyframes import Keyframe
 
 _TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4",
           "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2",
@@ -89,3 +93,28 @@ def read_ply(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
         raise PlyError(f"{path}: unsupported PLY format '{fmt}' (binary_little_endian and ascii are read)")
     points = np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float32)
     return points, {name: table[name].copy() for name, _ in props if name not in ("x", "y", "z")}, comments
+
+
+def write_map(path: Path, cloud: VoxelMap, keyframes: list[Keyframe], note: str) -> int:
+    """Writes a map (its points with confidence, observation count and last keyframe) with one `keyframe`
+    comment line per keyframe (index, t_us, tx ty tz qx qy qz qw); the number of points."""
+    points, counts, conf, which = cloud.points()
+    comments = [f"{note}; keyframe lines: index t_us tx ty tz qx qy qz qw"]
+    for i, kf in enumerate(keyframes):
+        pose = (*kf.p, *Rotation.from_matrix(kf.R).as_quat())
+        comments.append(f"keyframe {i} {kf.t_us} " + " ".join(f"{v:.9g}" for v in pose))
+    write_ply(path, points, {"confidence": conf, "observations": counts.astype(np.uint32),
+                             "keyframe": which.astype(np.uint32)}, comments)
+    return len(points)
+
+
+def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A map from `write_map`: its points and, per point, the time (us) of the keyframe that last saw it."""
+    points, fields, comments = read_ply(path)
+    times = {int(w[1]): int(w[2]) for c in comments if len(w := c.split()) >= 3 and w[0] == "keyframe"}
+    if "keyframe" not in fields or not times:
+        raise PlyError(f"{path}: not a map from etam map (no keyframe property or keyframe comments)")
+    missing = set(np.unique(fields["keyframe"]).tolist()) - set(times)
+    if missing:
+        raise PlyError(f"{path}: points of keyframes {sorted(missing)[:5]} that no comment line describes")
+    return points, np.array([times[k] for k in fields["keyframe"].tolist()], np.int64)

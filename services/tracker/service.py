@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services import keys
-from services.messages import CameraInfo, Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
+from services.messages import Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
 from services.runtime import Service, ServiceOptions
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
@@ -77,7 +77,12 @@ class TrackerService(Service):
                        "frames": self.tracker_params.frames, "detector": self.tracker_params.detector}
 
     async def main(self) -> None:
-        await asyncio.gather(self._track(), self._infos(), self._depths())
+        await asyncio.gather(self._track(), self.follow_intrinsics(self.cam, self.K, self._missing_intrinsics),
+                             self._depths())
+
+    def _missing_intrinsics(self) -> bool:
+        """Whether a camera sending events (or none yet) has no known intrinsics."""
+        return not self.streams or any(_camera(key) not in self.K for key in self.streams)
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
@@ -99,30 +104,6 @@ class TrackerService(Service):
             # the next update on the update grid, skipping any slots this packet already passed
             step = int(self.params["update_us"])
             stream.next_update_us = max(stream.next_update_us + step, msg.stamp - msg.stamp % step + step)
-
-    async def _infos(self) -> None:
-        """Intrinsics of every camera: kept up to date from its publications, and asked for (every
-        camera answers) four times a second while a camera sending events is not known yet."""
-        infos = keys.key(self.rig, "camera", self.cam, "info")
-        updates = self.subscribe(infos, CameraInfo, policy="latest")
-
-        async def ask() -> None:
-            while True:
-                if any(_camera(key) not in self.K for key in self.streams) or not self.streams:
-                    for key, msg in await self.query(infos, CameraInfo, timeout_s=0.5):
-                        self._on_info(key, msg)
-                await asyncio.sleep(0.25)
-
-        asker = asyncio.ensure_future(ask())
-        try:
-            async for key, msg in updates:
-                self._on_info(key, msg)
-        finally:
-            asker.cancel()
-
-    def _on_info(self, key: str, msg: object) -> None:
-        assert isinstance(msg, CameraInfo)
-        self.K[_camera(key)] = np.asarray(msg.K, np.float64).reshape(3, 3)
 
     async def _depths(self) -> None:
         async for key, msg in self.subscribe(f"{keys.ROOT}/{self.rig}/**/depth", Image, policy="latest"):
