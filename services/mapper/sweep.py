@@ -36,6 +36,9 @@ class SweepParams:
     # a kept pixel with fewer kept neighbours than this in that window is an outlier (EMVS's radius filter, done
     # on the image grid where a keyframe's points lie)
     min_neighbours: int = 3
+    # ... or whose own depth is further than this share from its neighbourhood's median (a pixel between two
+    # surfaces, or a lone wrong peak); 0: off
+    median_gap: float = 0.05
 
 
 def plane_depths(params: SweepParams) -> np.ndarray:
@@ -117,7 +120,7 @@ def semi_dense_depth(dsi: np.ndarray, depths: np.ndarray, params: SweepParams, K
     if params.min_parallax_px > 0 and K is not None and centres is not None and len(centres):
         keep &= parallax_px(K, centres, dsi.shape[1:]) * inv >= params.min_parallax_px
     depth = np.where(keep, 1.0 / inv, np.nan).astype(np.float32)
-    return masked_median(depth, params.median_px // 2, params.min_neighbours), conf
+    return masked_median(depth, params.median_px // 2, params.min_neighbours, params.median_gap), conf
 
 
 def parallax_px(K: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -136,9 +139,10 @@ def parallax_px(K: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> n
 
 
 @numba.njit(cache=True, nogil=True)
-def masked_median(depth: np.ndarray, r: int, min_neighbours: int) -> np.ndarray:  # pragma: no cover - numba kernel
+def masked_median(depth: np.ndarray, r: int, min_neighbours: int, gap: float) -> np.ndarray:  # pragma: no cover
     """Each finite pixel replaced by the median of the finite pixels in its (2r+1)^2 neighbourhood, or NaN
-    where fewer than `min_neighbours` others are finite there."""
+    where fewer than `min_neighbours` others are finite there or (`gap` > 0) its depth is more than `gap`
+    times the median away from it."""
     h, w = depth.shape
     out = np.full_like(depth, np.nan)
     buf = np.empty((2 * r + 1) ** 2, depth.dtype)
@@ -154,5 +158,7 @@ def masked_median(depth: np.ndarray, r: int, min_neighbours: int) -> np.ndarray:
                         buf[n] = d
                         n += 1
             if n > min_neighbours:
-                out[y, x] = np.median(buf[:n])
+                m = np.median(buf[:n])
+                if gap <= 0 or abs(depth[y, x] - m) <= gap * m:
+                    out[y, x] = m
     return out
