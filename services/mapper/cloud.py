@@ -13,6 +13,10 @@ import numpy as np
 class VoxelMap:
     def __init__(self, voxel_m: float = 0.03, max_points: int = 1_000_000) -> None:
         self.voxel_m, self.max_points = voxel_m, max_points
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets every point."""
         self._keys = np.zeros(0, np.int64)
         self._sums = np.zeros((0, 3), np.float64)
         self._counts = np.zeros(0, np.int64)
@@ -61,6 +65,3 @@ class VoxelMap:
         """The map: points (N x 3 float32), their observation counts, best peak heights, last keyframes."""
         return ((self._sums / np.maximum(self._counts, 1)[:, None]).astype(np.float32), self._counts.copy(),
                 self._conf.copy(), self._keyframe.copy())
-
-    def reset(self) -> None:
-        self.__init__(self.voxel_m, self.max_points)

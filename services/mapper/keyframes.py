@@ -45,6 +45,10 @@ class KeyframeMapper:
         self.params = params or KeyframeParams()
         self.depths = sweep.plane_depths(self.params.sweep)
         self.scene_depth = float(np.sqrt(self.depths[0] * self.depths[-1]))
+        self._restart()
+
+    def _restart(self) -> None:
+        """A new segment: no events held, no travel."""
         self._chunks: list[np.ndarray] = []
         self._n = 0
         self._last: np.ndarray | None = None  # where the camera was last seen, and how far it went in the segment
@@ -88,13 +92,13 @@ class KeyframeMapper:
         of a segment's baseline in it (a shorter one would place its points poorly), else None."""
         if self._n and self._travel >= min_share * self.params.baseline_share * self.scene_depth:
             return self.finish(trajectory)
-        self._chunks, self._n, self._last, self._travel = [], 0, None, 0.0
+        self._restart()
         return None
 
     def finish(self, trajectory: Trajectory) -> Keyframe:
         """The keyframe of the events held so far (the segment ends here)."""
         events = np.concatenate(self._chunks)
-        self._chunks, self._n, self._last, self._travel = [], 0, None, 0.0
+        self._restart()
         keyframe = sweep_keyframe(events, trajectory, self.K, self.width, self.height, self.depths,
                                   self.params.sweep)
         if len(keyframe.points):

@@ -27,7 +27,8 @@ from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
 
-POSES_KEPT = 30_000  # the latest poses held (10 minutes at 50 Hz): older events than these are dropped
+POSES_KEPT = 3_000  # the latest poses held (a minute at 50 Hz, many segments): older events are dropped
+WORK_PERIOD_S = 0.05  # new events and poses are taken in batches at most this often
 PENDING_EVENTS = 2_000_000  # events held while they wait for poses (32 MB); the oldest go beyond
 
 
@@ -93,6 +94,7 @@ class MapperService(Service):
         out = self.publisher("points")
         while True:
             await self._wake.wait()
+            await asyncio.sleep(WORK_PERIOD_S)  # a batch, not one pass (and one trajectory) per packet
             self._wake.clear()
             K = self.K.get(self.cam)
             if K is None or self._size is None or len(self._rows) < 2:
