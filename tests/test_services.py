@@ -203,7 +203,10 @@ def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: 
     with spawn("camera", "--source", "sim:6dof", *common), spawn("mapper", "--poses", "truth", *common), \
             client_session(router) as s:
         points = Collector(s, f"etam/{rig}/mapper/map/points")
+        depths = Collector(s, f"etam/{rig}/mapper/map/depth")
         first = wait_for(lambda: points.of(PointCloud), 90, "a keyframe's points")[0]
+        depth = image_to_array(wait_for(lambda: depths.of(Image), 10, "a keyframe's depth map")[0])
+        assert depth.shape == (260, 346) and 0.3 < float(np.nanmedian(depth)) < 8
         assert len(first.points) > 50 and first.keyframe is not None
         assert np.all(np.isfinite(first.points)) and 0.3 < float(np.median(first.points[:, 2])) < 8
         whole = _query(s, f"etam/{rig}/mapper/map/all")

@@ -3,7 +3,8 @@
 It follows the camera's events (fifo, drop-oldest) and poses (the tracker's ego pose, or the
 simulator's truth with `--poses truth`), holds events until poses cover their time, and feeds them
 to the same keyframe sweep as `etam map`, in a worker thread so that receiving never waits on a
-sweep. Each keyframe's fused points are published on ``mapper/map/points``; ``mapper/map/all``
+sweep. Each keyframe's fused points are published on ``mapper/map/points``, and its semi-dense depth
+map (m, NaN where none; the tracker's `xyz` reads it) on ``mapper/map/depth``; ``mapper/map/all``
 answers with the whole map; commands `reset` and `save` (`path`: a PLY file) act on it. The map
 is a capped voxel grid, and pending events and poses are bounded too, so memory stays bounded.
 """
@@ -18,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from services import keys
-from services.messages import EVENT_DTYPE, Command, EventPacket, Message, PointCloud, Pose, Reply
+from services.messages import (
+    EVENT_DTYPE, Command, EventPacket, Message, PointCloud, Pose, Reply, image_from_array,
+)
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.ply import write_map
@@ -91,7 +94,7 @@ class MapperService(Service):
 
     async def _work(self) -> None:
         """Sweeps the events that poses cover, in a worker thread, and publishes each keyframe's points."""
-        out = self.publisher("points")
+        out, depth_out = self.publisher("points"), self.publisher("depth")
         while True:
             await self._wake.wait()
             await asyncio.sleep(WORK_PERIOD_S)  # a batch, not one pass (and one trajectory) per packet
@@ -111,6 +114,7 @@ class MapperService(Service):
                 new = self.cloud.add(kf.points, kf.confidence, len(self.keyframes))
                 self.keyframes.append(kf)
                 out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
+                depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
                 log.info("keyframe %d at %.3f s: %d points, map %d", len(self.keyframes), kf.t_us / 1e6,
                          len(kf.points), len(self.cloud))
                 self.status.update(keyframes=len(self.keyframes), map_points=len(self.cloud))
