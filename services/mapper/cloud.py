@@ -1,13 +1,19 @@
 """The global map: keyframes' points fused on a voxel grid, with a cap on its size.
 
 Each voxel keeps the mean of the points that fell in it, how many did, and the last keyframe that saw
-it. Points of several keyframes on one surface merge instead of piling up; a map over its cap
-forgets the voxels seen longest ago, so memory stays bounded on a long flight.
+it; the map keeps each keyframe's time and pose (not its images), what a saved map needs to say.
+Points of several keyframes on one surface merge instead of piling up; a map over its cap forgets the
+voxels seen longest ago, so memory stays bounded on a long flight.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from services.mapper.keyframes import Keyframe
 
 
 class VoxelMap:
@@ -22,6 +28,7 @@ class VoxelMap:
         self._counts = np.zeros(0, np.int64)
         self._conf = np.zeros(0, np.float32)
         self._keyframe = np.zeros(0, np.int64)
+        self.views: list[tuple[int, np.ndarray, np.ndarray]] = []  # per keyframe: t_us, R (camera to world), p
 
     def __len__(self) -> int:
         return len(self._keys)
@@ -31,6 +38,12 @@ class VoxelMap:
         cell = np.floor(points / self.voxel_m).astype(np.int64) + (1 << 20)
         cell = np.clip(cell, 0, (1 << 21) - 1)
         return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+
+    def add_keyframe(self, kf: Keyframe) -> np.ndarray:
+        """Fuses a keyframe's points (see `add`) and keeps its time and pose; the voxels it touched."""
+        new = self.add(kf.points, kf.confidence, len(self.views))
+        self.views.append((kf.t_us, kf.R, kf.p))
+        return new
 
     def add(self, points: np.ndarray, confidence: np.ndarray, keyframe: int) -> np.ndarray:
         """Fuses points (N x 3, world) seen by `keyframe`; the voxels' new means of those it touched."""

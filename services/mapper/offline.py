@@ -12,7 +12,7 @@ from services.camera.filters import Undistort
 from services.camera.formats import FormatError, open_recording
 from services.mapper.cloud import VoxelMap
 from services.mapper.evaluation import coverage, depth_errors, depth_scores, project
-from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
+from services.mapper.keyframes import KeyframeMapper, KeyframeParams
 from services.mapper.ply import read_map, write_map
 from services.mapper.trajectory import Trajectory, read_tum
 
@@ -24,7 +24,6 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
               voxel_m: float = 0.03, progress: bool = True) -> dict[str, Any]:
     """Sweeps a recording's events into keyframes with the poses of `poses` (a TUM file) or the file's
     own truth poses, fuses them into a voxel map and writes it as PLY with the keyframes' times and poses."""
-    keyframes: list[Keyframe] = []
     cloud = VoxelMap(voxel_m)
     n_events = 0
     with open_recording(src) as rec:
@@ -49,14 +48,12 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
                     chunk = undistort(chunk)
                 n_events += len(chunk)
                 for kf in mapper.add(chunk, trajectory):
-                    cloud.add(kf.points, kf.confidence, len(keyframes))
-                    keyframes.append(kf)
+                    cloud.add_keyframe(kf)
             last = mapper.flush(trajectory)
             if last is not None:
-                cloud.add(last.points, last.confidence, len(keyframes))
-                keyframes.append(last)
-    n_points = write_map(out, cloud, keyframes, f"etam map of {src.name}: voxel {voxel_m} m")
-    return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(keyframes),
+                cloud.add_keyframe(last)
+    n_points = write_map(out, cloud, f"etam map of {src.name}: voxel {voxel_m} m")
+    return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(cloud.views),
             "points": n_points, "poses": str(poses) if poses else "truth"}
 
 

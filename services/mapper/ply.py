@@ -13,7 +13,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from services.mapper.cloud import VoxelMap
-from services.mapper.keyframes import Keyframe
 
 _TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4",
           "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2",
@@ -95,14 +94,14 @@ def read_ply(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     return points, {name: table[name].copy() for name, _ in props if name not in ("x", "y", "z")}, comments
 
 
-def write_map(path: Path, cloud: VoxelMap, keyframes: list[Keyframe], note: str) -> int:
+def write_map(path: Path, cloud: VoxelMap, note: str) -> int:
     """Writes a map (its points with confidence, observation count and last keyframe) with one `keyframe`
     comment line per keyframe (index, t_us, tx ty tz qx qy qz qw); the number of points."""
     points, counts, conf, which = cloud.points()
     comments = [f"{note}; keyframe lines: index t_us tx ty tz qx qy qz qw"]
-    for i, kf in enumerate(keyframes):
-        pose = (*kf.p, *Rotation.from_matrix(kf.R).as_quat())
-        comments.append(f"keyframe {i} {kf.t_us} " + " ".join(f"{v:.9g}" for v in pose))
+    for i, (t_us, R, p) in enumerate(cloud.views):
+        pose = (*p, *Rotation.from_matrix(R).as_quat())
+        comments.append(f"keyframe {i} {t_us} " + " ".join(f"{v:.9g}" for v in pose))
     write_ply(path, points, {"confidence": conf, "observations": counts.astype(np.uint32),
                              "keyframe": which.astype(np.uint32)}, comments)
     return len(points)

@@ -46,7 +46,6 @@ class MapperService(Service):
         self.K: dict[str, np.ndarray] = {}
         self.cloud = VoxelMap()
         self.mapper: KeyframeMapper | None = None
-        self.keyframes: list[Keyframe] = []
         self._rows: collections.deque[np.ndarray] = collections.deque(maxlen=POSES_KEPT)
         self._pending: collections.deque[np.ndarray] = collections.deque()
         self._n_pending = 0
@@ -111,13 +110,12 @@ class MapperService(Service):
             trajectory = Trajectory(np.array(self._rows))
             ready = ready[ready["t"] >= trajectory.start_us]
             for kf in await asyncio.to_thread(self.mapper.add, ready, trajectory):
-                new = self.cloud.add(kf.points, kf.confidence, len(self.keyframes))
-                self.keyframes.append(kf)
+                new = self.cloud.add_keyframe(kf)
                 out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
                 depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
-                log.info("keyframe %d at %.3f s: %d points, map %d", len(self.keyframes), kf.t_us / 1e6,
+                log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
                          len(kf.points), len(self.cloud))
-                self.status.update(keyframes=len(self.keyframes), map_points=len(self.cloud))
+                self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
 
     def _take_until(self, until_us: int) -> np.ndarray:
         """The pending events up to `until_us` (later ones stay pending), in time order."""
@@ -135,12 +133,12 @@ class MapperService(Service):
 
     def _whole_map(self, _: Message | None) -> Message:
         points, _, conf, _ = self.cloud.points()
-        t = self.keyframes[-1].t_us if self.keyframes else 0
+        t = self.cloud.views[-1][0] if self.cloud.views else 0
         return PointCloud(t=t, stamp=t, points=points, confidence=conf)
 
     def _clear(self) -> None:
         self.cloud.reset()
-        self.mapper, self.keyframes = None, []
+        self.mapper = None
         self._rows.clear()
         self._pending.clear()
         self._n_pending = 0
@@ -154,7 +152,7 @@ class MapperService(Service):
             if not isinstance(path, str) or not path:
                 return Reply(ok=False, error="save: give args {'path': 'FILE.ply'}")
             try:
-                n = write_map(Path(path), self.cloud, self.keyframes, f"etam mapper {self.rig}/{self.name}")
+                n = write_map(Path(path), self.cloud, f"etam mapper {self.rig}/{self.name}")
             except OSError as exc:
                 return Reply(ok=False, error=f"save: {path}: {exc.strerror or exc}")
             return Reply(ok=True, result={"path": path, "points": n})
