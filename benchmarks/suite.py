@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import filters, latency, mapping, playback, readers, tracking, transport, writers
+from benchmarks import filters, latency, mapping, mosaic, playback, readers, tracking, transport, writers
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -40,6 +40,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "tracking": tracking.run,
     "tracking-held-out": tracking.held_out,
     "mapping": mapping.run,
+    "mosaic": mosaic.run,
     "latency": latency.run,
     "simulator": _simulator,
 }
@@ -120,6 +121,21 @@ def format_results(results: dict) -> str:
         lines.append(f"tracking latency camera publish -> tracks publish, {rig}: p50 {row['latency_ms_p50']:.2f} ms "
                      f"p99 {row['latency_ms_p99']:.2f} ms max {row['latency_ms_max']:.1f} ms over {row['updates']} "
                      f"updates at {row['events_per_s'] / 1e6:.2f} Mev/s")
+    for row in results.get("mapping", []):
+        if "events_per_s" in row:
+            lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.2f} Mev/s ({row['planes']} planes, "
+                         f"{row['size']}, {row['threads']} threads)")
+        else:
+            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: median error {row['median_error_pct_of_range']:.2f} "
+                         f"% of range, within 5 % {row['within_5pct']:.3f}, completeness {row['completeness']:.2f}")
+    for row in results.get("mosaic", []):
+        if row["stage"] == "mosaic quality":
+            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: PSNR {row['psnr_db']:.2f} dB, SSIM {row['ssim']:.3f}, "
+                         f"observed {row['observed']:.1%} of the panorama")
+        elif "events_per_s" in row:
+            lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.2f} Mev/s on one core ({row['size']})")
+        else:
+            lines.append(f"{row['stage']} {row['size']}: {row['s_per_image'] * 1e3:.0f} ms per image")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

@@ -56,6 +56,27 @@ def _sweep_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planes", type=int, default=100, help="depth planes of the sweep (default 100)")
 
 
+def _mosaic_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--size", default="2048x1024", metavar="WxH",
+                   help="equirectangular panorama size, pixels (default 2048x1024)")
+    p.add_argument("--contrast", type=float, default=0.25,
+                   help="the sensor's contrast threshold C, log intensity per event (default 0.25)")
+
+
+def _mosaic_params(args: argparse.Namespace):  # noqa: ANN202 - MosaicParams
+    """The mosaic's settings from `--size` and `--contrast`; ConfigError naming a bad one."""
+    from services.mapper.mosaic import MosaicParams
+
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise config.ConfigError(f"--size takes WxH in pixels, e.g. 2048x1024, got {args.size!r}") from None
+    if width < 8 or height < 4 or args.contrast <= 0:
+        raise config.ConfigError(f"--size needs at least 8x4 (got {args.size}) and --contrast > 0 "
+                                 f"(got {args.contrast})")
+    return MosaicParams(width=width, height=height, contrast=args.contrast)
+
+
 def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - ServiceOptions
     from services.runtime import ServiceOptions
 
@@ -94,7 +115,8 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
 def _cmd_mapper(args: argparse.Namespace) -> int:
     from services.mapper.service import MapperService
 
-    return MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses).run()
+    return MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses,
+                         mode=args.build, mosaic_params=_mosaic_params(args)).run()
 
 
 def _cmd_web(args: argparse.Namespace) -> int:
@@ -103,8 +125,8 @@ def _cmd_web(args: argparse.Namespace) -> int:
     return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
 
 
-# sources whose truth poses the mapper maps with in `etam up`, until the tracker's ego-motion gives poses of any
-MAPPED_SIMS = ("sim:6dof", "sim:stereo")
+# sources whose truth poses the mapper maps with in `etam up` (and how), until the tracker's ego-motion gives poses
+MAPPED_SIMS = {"sim:6dof": "depth", "sim:stereo": "depth", "sim:rotation": "mosaic"}
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -116,6 +138,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level, services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS else ())),
+        mapper_args=("--build", MAPPED_SIMS.get(args.source, "depth")),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
                      *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
@@ -263,6 +286,31 @@ def _cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_mosaic(args: argparse.Namespace) -> int:
+    from services.mapper.offline import build_mosaic
+
+    for name in ("input", "poses"):
+        if getattr(args, name) and not Path(getattr(args, name)).exists():
+            raise config.ConfigError(f"{getattr(args, name)}: no such file")
+    summary = build_mosaic(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None,
+                           _mosaic_params(args), progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote a {summary['size'][0]}x{summary['size'][1]} mosaic "
+          f"({summary['observed']:.0%} observed) from {summary['events']} events ({summary['poses']} poses) "
+          f"to {args.out}")
+    return 0
+
+
+def _cmd_eval_mosaic(args: argparse.Namespace) -> int:
+    from services.mapper.offline import eval_mosaic
+
+    for path in (args.mosaic, args.truth):
+        if not Path(path).exists():
+            raise config.ConfigError(f"{path}: no such file")
+    scores = eval_mosaic(Path(args.mosaic), Path(args.truth))
+    print(json.dumps(scores)) if args.json else _print_scores(scores)
+    return 0
+
+
 def _print_scores(scores: dict) -> None:
     for k, v in scores.items():
         print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
@@ -388,7 +436,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cam", default="cam0", help="the camera whose events it maps (default cam0)")
     p.add_argument("--poses", default="ego", choices=("ego", "truth"),
                    help="camera poses: the tracker's ego pose (default), or the camera's truth pose (simulator)")
+    p.add_argument("--build", default="depth", choices=("depth", "mosaic"),
+                   help="what to build: depth, a semi-dense 3D map (default); mosaic, the panorama of a rotating "
+                        "camera (on mapper/map/mosaic)")
     _sweep_flags(p)
+    _mosaic_flags(p)
     p.set_defaults(func=_cmd_mapper)
 
     p = sub.add_parser("web", help="run the dashboard service alone")
@@ -446,6 +498,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_map)
 
+    p = sub.add_parser("mosaic", help="panoramic mosaic of a rotating camera's recording (gradient EKF per "
+                                      "panorama pixel, Poisson reconstruction) into a 16-bit PNG")
+    p.add_argument("input", help="any readable event file")
+    p.add_argument("--poses", metavar="TRAJ.tum", help="camera orientations (TUM: t tx ty tz qx qy qz qw, "
+                                                        "T_world_cam); default: the file's truth poses")
+    p.add_argument("--out", default="mosaic.png", help="PNG to write (default mosaic.png; 0 = never observed)")
+    _mosaic_flags(p)
+    p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
+    p.set_defaults(func=_cmd_mosaic)
+
     p = sub.add_parser("eval", help="score results against ground truth")
     kinds = p.add_subparsers(dest="kind", required=True, metavar="KIND")
     q = kinds.add_parser("tracking", help="OP50/OP75, success AUC, precision@20, false positives, id switches "
@@ -460,6 +522,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--truth", required=True, help="a recording with /truth/depth and /truth/poses (etam sim 6dof)")
     q.add_argument("--json", action="store_true", help="machine-readable output")
     q.set_defaults(func=_cmd_eval_map)
+    q = kinds.add_parser("mosaic", help="PSNR and SSIM of a mosaic against the truth panorama (log intensity, "
+                                        "observed pixels, after removing offset and scale)")
+    q.add_argument("--mosaic", required=True, help="PNG from etam mosaic")
+    q.add_argument("--truth", required=True, help="a recording with /truth/panorama (etam sim rotation)")
+    q.add_argument("--json", action="store_true", help="machine-readable output")
+    q.set_defaults(func=_cmd_eval_mosaic)
 
     p = sub.add_parser("info", help="sensor size, events, duration, rate, polarity, IMU and truth of a file")
     p.add_argument("file", help="an event file or ECD folder")

@@ -214,6 +214,7 @@ class UpOptions:
     services: tuple[str, ...] = ("camera", "tracker")
     log_level: str = "INFO"
     camera_args: tuple[str, ...] = ()
+    mapper_args: tuple[str, ...] = ()
 
 
 def _local_endpoint(listen: str) -> str:
@@ -228,7 +229,8 @@ def _children(opts: UpOptions) -> list[Child]:
     common = ["--rig", opts.rig, "--connect", _local_endpoint(opts.listen), "--log-level", opts.log_level]
     out = []
     for name in opts.services:
-        extra = {"camera": ["--source", opts.source, *opts.camera_args], "mapper": ["--poses", "truth"]}.get(name, [])
+        extra = {"camera": ["--source", opts.source, *opts.camera_args],
+                 "mapper": ["--poses", "truth", *opts.mapper_args]}.get(name, [])
         out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra]))
     if opts.web:
         out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)],

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from services.camera.simulator import _texture
+from services.camera.simulator import LOG_EPS, _texture
 
 
 class RotationScene:
@@ -29,7 +29,7 @@ class RotationScene:
             x, y = rng.integers(0, pw - 80), rng.integers(ph // 4, 3 * ph // 4 - 60)
             pano[y:y + rng.integers(15, 60), x:x + rng.integers(15, 80)] = rng.uniform(0.1, 1.0)
         self.panorama = pano.astype(np.float32)
-        self._log_pano = np.log(self.panorama + 1e-3)
+        self._log_pano = np.log(self.panorama + LOG_EPS)
         self.period_us = int(period_s * 1e6)
         w = 2 * np.pi / period_s
         peak = np.deg2rad(max_omega_deg_s)

@@ -1,4 +1,5 @@
-"""Map accuracy against ground-truth depth (`etam eval map`), numpy in, numbers out.
+"""Map accuracy against ground-truth depth (`etam eval map`) and mosaic quality against the truth
+panorama (`etam eval mosaic`), numpy in, numbers out.
 
 Each map point is scored in the truth depth frame nearest the time of the keyframe that last saw it:
 moved into that frame's true camera, projected, and its depth compared with the true depth at that
@@ -8,6 +9,7 @@ poses the map was built from.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from services.mapper.trajectory import Trajectory
@@ -84,3 +86,33 @@ def coverage(points_px: np.ndarray, edges: np.ndarray) -> float:
         for dx in range(3):
             near |= hit[dy:dy + h, dx:dx + w]
     return float((near & edges).sum() / edges.sum())
+
+
+def image_scores(estimate: np.ndarray, observed: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """PSNR (dB) and SSIM of `estimate` against `truth` over the `observed` pixels, after the offset and
+    scale that fit it to the truth best (a mosaic from events knows neither); the peak is the truth's
+    range there (1st to 99th percentile, so a few extreme pixels do not flatter it). SSIM: Gaussian
+    window of 1.5 px (Wang et al. 2004), averaged over observed pixels whose window is all observed."""
+    est, ref = estimate[observed].astype(np.float64), truth[observed].astype(np.float64)
+    if len(est) < 2:
+        raise ValueError("the mosaic observed fewer than 2 pixels: nothing to score")
+    scale, offset = np.linalg.lstsq(np.stack([est, np.ones_like(est)], 1), ref, rcond=None)[0]
+    if scale < 0:  # an inverted mosaic is wrong, not a fit: score it as a flat one
+        scale, offset = 0.0, float(ref.mean())
+    fitted = np.where(observed, estimate * scale + offset, truth).astype(np.float64)
+    lo, hi = np.percentile(ref, [1, 99])
+    peak = max(float(hi - lo), 1e-12)
+    rmse = float(np.sqrt(np.mean((fitted[observed] - ref) ** 2)))
+    ref_img = truth.astype(np.float64)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (11, 11), 1.5, borderType=cv2.BORDER_REFLECT)
+
+    mu_x, mu_y = blur(fitted), blur(ref_img)
+    var_x, var_y = blur(fitted * fitted) - mu_x ** 2, blur(ref_img * ref_img) - mu_y ** 2
+    cov = blur(fitted * ref_img) - mu_x * mu_y
+    c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
+    ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
+    inner = cv2.erode(observed.astype(np.uint8), np.ones((11, 11), np.uint8), borderType=cv2.BORDER_REFLECT) > 0
+    return {"psnr_db": float(20 * np.log10(peak / max(rmse, 1e-12))), "ssim": float(ssim[inner].mean())
+            if inner.any() else float("nan"), "rmse": rmse, "peak": peak}

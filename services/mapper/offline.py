@@ -1,18 +1,23 @@
-"""Offline mapping commands: `etam map` (a recording and poses to a PLY cloud) and `etam eval map`."""
+"""Offline mapping commands: `etam map` (a recording and poses to a PLY cloud), `etam mosaic` (a
+rotating camera's recording to a panorama PNG), `etam eval map` and `etam eval mosaic`."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from services.camera.filters import Undistort
-from services.camera.formats import FormatError, open_recording
+from services.camera.formats import FormatError, Recording, open_recording
+from services.camera.simulator import LOG_EPS
 from services.mapper.cloud import VoxelMap
-from services.mapper.evaluation import coverage, depth_errors, depth_scores, project
+from services.mapper.evaluation import coverage, depth_errors, depth_scores, image_scores, project
 from services.mapper.keyframes import KeyframeMapper, KeyframeParams
+from services.mapper.mosaic import Mosaic, MosaicParams, from_png16, to_png16
 from services.mapper.ply import read_map, write_map
 from services.mapper.trajectory import Trajectory, read_tum
 
@@ -25,36 +30,86 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     """Sweeps a recording's events into keyframes with the poses of `poses` (a TUM file) or the file's
     own truth poses, fuses them into a voxel map and writes it as PLY with the keyframes' times and poses."""
     cloud = VoxelMap(voxel_m)
-    n_events = 0
     with open_recording(src) as rec:
-        if poses is not None:
-            trajectory = Trajectory(read_tum(str(poses)))
-        elif rec.truth.poses is not None:
-            trajectory = Trajectory(rec.truth.poses)
-        else:
-            raise FormatError(src, "no poses to map with: give --poses traj.tum (e.g. from etam odom), "
-                              "or a recording with /truth/poses")
-        K = rec.K_or_default()
-        cal = rec.calibration
-        undistort = Undistort(rec.width, rec.height, K, cal.dist_model, cal.dist) \
-            if cal is not None and cal.dist_model != "none" and np.any(cal.dist) else None
-        mapper = KeyframeMapper(K, rec.width, rec.height, params)
-        with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
-            for chunk in rec.chunks():
-                bar.update(len(chunk))
-                t = chunk["t"]
-                chunk = chunk[(t >= trajectory.start_us) & (t <= trajectory.end_us)]  # poses are not extrapolated
-                if undistort is not None:
-                    chunk = undistort(chunk)
-                n_events += len(chunk)
-                for kf in mapper.add(chunk, trajectory):
-                    cloud.add_keyframe(kf)
-            last = mapper.flush(trajectory)
-            if last is not None:
-                cloud.add_keyframe(last)
+        mapper = KeyframeMapper(rec.K_or_default(), rec.width, rec.height, params)
+        trajectory = _trajectory(rec, src, poses)
+        n_events = 0
+        for chunk in _posed_chunks(rec, trajectory, progress):
+            n_events += len(chunk)
+            for kf in mapper.add(chunk, trajectory):
+                cloud.add_keyframe(kf)
+        last = mapper.flush(trajectory)
+        if last is not None:
+            cloud.add_keyframe(last)
     n_points = write_map(out, cloud, f"etam map of {src.name}: voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(cloud.views),
             "points": n_points, "poses": str(poses) if poses else "truth"}
+
+
+def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: MosaicParams | None = None,
+                 progress: bool = True) -> dict[str, Any]:
+    """Folds a rotating camera's events, with the orientations of `poses` (a TUM file) or the file's truth
+    poses, into a panorama's gradient map and writes its Poisson reconstruction as a 16-bit PNG."""
+    with open_recording(src) as rec:
+        trajectory = _trajectory(rec, src, poses)
+        mosaic = Mosaic(rec.K_or_default(), rec.width, rec.height, params)
+        n_events = 0
+        for chunk in _posed_chunks(rec, trajectory, progress):
+            n_events += len(chunk)
+            mosaic.add(chunk, trajectory)
+    observed = mosaic.observed()
+    if not cv2.imwrite(str(out), to_png16(mosaic.log_intensity(), observed)):
+        raise OSError(f"{out}: cannot write a PNG there")
+    return {"input": str(src), "output": str(out), "events": n_events, "events_used": mosaic.events,
+            "size": [mosaic.params.width, mosaic.params.height], "observed": float(observed.mean()),
+            "poses": str(poses) if poses else "truth"}
+
+
+def eval_mosaic(mosaic: Path, truth: Path) -> dict[str, Any]:
+    """PSNR and SSIM of a mosaic PNG against a recording's truth panorama, in log intensity (what events
+    measure), over the pixels the mosaic observed, after removing offset and scale; a mosaic of another
+    size is resized to the truth's."""
+    image = cv2.imread(str(mosaic), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FormatError(mosaic, "not a readable image")
+    try:
+        estimate, observed = from_png16(image)
+    except ValueError as exc:
+        raise FormatError(mosaic, str(exc)) from None
+    with open_recording(truth) as rec:
+        if rec.truth.panorama is None:
+            raise FormatError(truth, "no truth panorama (/truth/panorama, as etam sim rotation writes)")
+        reference = np.log(np.asarray(rec.truth.panorama, np.float64) + LOG_EPS)
+    size = reference.shape[::-1]
+    if estimate.shape != reference.shape:
+        estimate = cv2.resize(estimate, size, interpolation=cv2.INTER_LINEAR)
+        observed = cv2.resize(observed.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    return {"mosaic": str(mosaic), "truth": str(truth), "observed": float(observed.mean()),
+            **image_scores(estimate, observed, reference)}
+
+
+def _trajectory(rec: Recording, src: Path, poses: Path | None) -> Trajectory:
+    """The poses of `poses` (TUM), or else the recording's truth poses."""
+    if poses is not None:
+        return Trajectory(read_tum(str(poses)))
+    if rec.truth.poses is not None:
+        return Trajectory(rec.truth.poses)
+    raise FormatError(src, "no poses to map with: give --poses traj.tum (e.g. from etam odom), "
+                      "or a recording with /truth/poses")
+
+
+def _posed_chunks(rec: Recording, trajectory: Trajectory, progress: bool) -> Iterator[np.ndarray]:
+    """The recording's events inside the trajectory's span (poses are not extrapolated), undistorted where
+    the file is calibrated with distortion, with a progress bar."""
+    cal = rec.calibration
+    undistort = Undistort(rec.width, rec.height, rec.K_or_default(), cal.dist_model, cal.dist) \
+        if cal is not None and cal.dist_model != "none" and np.any(cal.dist) else None
+    with tqdm(unit="ev", unit_scale=True, desc=rec.path.name, disable=not progress) as bar:
+        for chunk in rec.chunks():
+            bar.update(len(chunk))
+            t = chunk["t"]
+            chunk = chunk[(t >= trajectory.start_us) & (t <= trajectory.end_us)]
+            yield undistort(chunk) if undistort is not None else chunk
 
 
 def eval_map(cloud: Path, truth: Path) -> dict[str, Any]:

@@ -1,4 +1,5 @@
-"""The mapper service: a semi-dense map from one camera's events and a pose stream, live.
+"""The mapper service: a semi-dense map (or, for a rotating camera, a panoramic mosaic) from one
+camera's events and a pose stream, live.
 
 It follows the camera's events (fifo, drop-oldest) and poses (the tracker's ego pose, or the
 simulator's truth with `--poses truth`), holds events until poses cover their time, and feeds them
@@ -7,6 +8,10 @@ sweep. Each keyframe's fused points are published on ``mapper/map/points``, and 
 map (m, NaN where none; the tracker's `xyz` reads it) on ``mapper/map/depth``; ``mapper/map/all``
 answers with the whole map; commands `reset` and `save` (`path`: a PLY file) act on it. The map
 is a capped voxel grid, and pending events and poses are bounded too, so memory stays bounded.
+
+With `--build mosaic` the same events and poses feed the mosaic's gradient filter instead (`etam
+mosaic`'s), and its Poisson reconstruction is published at most twice a second on
+``mapper/map/mosaic`` (a 16-bit PNG Image, 0 where never observed); `save` then writes that PNG.
 """
 
 from __future__ import annotations
@@ -14,8 +19,10 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from services import keys
@@ -24,6 +31,7 @@ from services.messages import (
 )
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
+from services.mapper.mosaic import Mosaic, MosaicParams, to_png16
 from services.mapper.ply import write_map
 from services.mapper.trajectory import Trajectory
 from services.runtime import Service, ServiceOptions
@@ -33,16 +41,22 @@ log = logging.getLogger(__name__)
 POSES_KEPT = 3_000  # the latest poses held (a minute at 50 Hz, many segments): older events are dropped
 WORK_PERIOD_S = 0.05  # new events and poses are taken in batches at most this often
 PENDING_EVENTS = 2_000_000  # events held while they wait for poses (32 MB); the oldest go beyond
+MOSAIC_PERIOD_S = 0.5  # the mosaic is rebuilt (a Poisson solve, ~0.2 s at 2048 x 1024) and published this often
+MODES = ("depth", "mosaic")
 
 
 class MapperService(Service):
     kind = "mapper"
 
     def __init__(self, options: ServiceOptions, params: KeyframeParams | None = None, cam: str = "cam0",
-                 poses: str = "ego") -> None:
+                 poses: str = "ego", mode: str = "depth", mosaic_params: MosaicParams | None = None) -> None:
         super().__init__(options)
-        self.map_params = params or KeyframeParams()
-        self.cam, self.poses = cam, poses
+        if mode not in MODES:
+            raise ValueError(f"mapper mode {mode!r} is not one of {', '.join(MODES)}")
+        self.map_params, self.mosaic_params = params or KeyframeParams(), mosaic_params or MosaicParams()
+        self.cam, self.poses, self.mode = cam, poses, mode
+        self.mosaic: Mosaic | None = None
+        self._mosaic_published = 0.0
         self.K: dict[str, np.ndarray] = {}
         self.cloud = VoxelMap()
         self.mapper: KeyframeMapper | None = None
@@ -51,7 +65,8 @@ class MapperService(Service):
         self._n_pending = 0
         self._size: tuple[int, int] | None = None
         self._wake = asyncio.Event()
-        self.status = {"poses": poses, "camera": cam, "keyframes": 0, "map_points": 0, "dropped_events": 0}
+        self.status = {"mode": mode, "poses": poses, "camera": cam, "keyframes": 0, "map_points": 0,
+                       "dropped_events": 0}
 
     def pose_key(self) -> str:
         if self.poses == "truth":
@@ -93,7 +108,7 @@ class MapperService(Service):
 
     async def _work(self) -> None:
         """Sweeps the events that poses cover, in a worker thread, and publishes each keyframe's points."""
-        out, depth_out = self.publisher("points"), self.publisher("depth")
+        out, depth_out, mosaic_out = self.publisher("points"), self.publisher("depth"), self.publisher("mosaic")
         while True:
             await self._wake.wait()
             await asyncio.sleep(WORK_PERIOD_S)  # a batch, not one pass (and one trajectory) per packet
@@ -105,10 +120,13 @@ class MapperService(Service):
             ready = self._take_until(until_us)
             if not len(ready):
                 continue
-            if self.mapper is None:
-                self.mapper = KeyframeMapper(K, *self._size, self.map_params)
             trajectory = Trajectory(np.array(self._rows))
             ready = ready[ready["t"] >= trajectory.start_us]
+            if self.mode == "mosaic":
+                await self._fold_mosaic(ready, trajectory, K, mosaic_out)
+                continue
+            if self.mapper is None:
+                self.mapper = KeyframeMapper(K, *self._size, self.map_params)
             for kf in await asyncio.to_thread(self.mapper.add, ready, trajectory):
                 new = self.cloud.add_keyframe(kf)
                 out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
@@ -116,6 +134,20 @@ class MapperService(Service):
                 log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
                          len(kf.points), len(self.cloud))
                 self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
+
+    async def _fold_mosaic(self, ready: np.ndarray, trajectory: Trajectory, K: np.ndarray, out) -> None:  # noqa: ANN001
+        """Folds events into the mosaic (in a worker thread) and publishes it when it is due."""
+        if self.mosaic is None:
+            self.mosaic = Mosaic(K, *self._size, self.mosaic_params)
+        mosaic = self.mosaic
+        await asyncio.to_thread(mosaic.add, ready, trajectory)
+        if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
+            return
+        self._mosaic_published = time.monotonic()
+        image = await asyncio.to_thread(lambda: to_png16(mosaic.log_intensity(), mosaic.observed()))
+        t_us = int(ready["t"][-1])
+        out.publish(image_from_array(t_us, image, "png"))
+        self.status.update(mosaic_events=mosaic.events, mosaic_observed=round(float((image > 0).mean()), 4))
 
     def _take_until(self, until_us: int) -> np.ndarray:
         """The pending events up to `until_us` (later ones stay pending), in time order."""
@@ -139,6 +171,7 @@ class MapperService(Service):
     def _clear(self) -> None:
         self.cloud.reset()
         self.mapper = None
+        self.mosaic = None
         self._rows.clear()
         self._pending.clear()
         self._n_pending = 0
@@ -152,11 +185,22 @@ class MapperService(Service):
             if not isinstance(path, str) or not path:
                 return Reply(ok=False, error="save: give args {'path': 'FILE.ply'}")
             try:
+                if self.mode == "mosaic":
+                    return self._save_mosaic(path)
                 n = write_map(Path(path), self.cloud, f"etam mapper {self.rig}/{self.name}")
             except OSError as exc:
                 return Reply(ok=False, error=f"save: {path}: {exc.strerror or exc}")
             return Reply(ok=True, result={"path": path, "points": n})
         return None
+
+
+    def _save_mosaic(self, path: str) -> Reply:
+        """The mosaic as `etam mosaic` writes it (so `etam eval mosaic` reads it)."""
+        if self.mosaic is None:
+            return Reply(ok=False, error="save: no mosaic yet (no events with poses so far)")
+        if not cv2.imwrite(path, to_png16(self.mosaic.log_intensity(), self.mosaic.observed())):
+            raise OSError(f"cannot write a PNG at {path}")
+        return Reply(ok=True, result={"path": path, "observed": float(self.mosaic.observed().mean())})
 
 
 def _matrix(kf: Keyframe) -> np.ndarray:

@@ -36,7 +36,7 @@ class Calibration:
     T_body_cam: np.ndarray | None = None
 
 
-TRUTH_TABLES = ("poses", "boxes", "boxes_3d", "ignore", "omega")  # the tables of `Truth`, as named in files
+TRUTH_TABLES = ("poses", "boxes", "boxes_3d", "ignore", "omega", "panorama")  # the tables of `Truth`, as named in files
 
 
 @dataclass
@@ -48,6 +48,7 @@ class Truth:
     boxes_3d: np.ndarray | None = None  # M x 4 beside `boxes`: object centre x y z (m, camera frame), width (m)
     ignore: np.ndarray | None = None  # K x 6 like `boxes`: objects in the image left unscored ("don't care")
     omega: np.ndarray | None = None  # N x 4 (t_s, wx wy wz rad/s)
+    panorama: np.ndarray | None = None  # H x W intensity of the scene around a rotating camera (equirectangular)
     depth_t: np.ndarray | None = None  # N frame times (us) of ...
     depth_maps: Sequence[np.ndarray] | None = None  # ... N x H x W metric depth (float32, NaN unknown), read on demand
 

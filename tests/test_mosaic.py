@@ -1,0 +1,89 @@
+"""Mosaic: Poisson reconstruction, the 16-bit mosaic file, and `etam mosaic` / `etam eval mosaic` end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.mapper.evaluation import image_scores
+from services.mapper.mosaic import from_png16, poisson, to_png16
+from tests.conftest import etam_argv
+
+
+def _smooth(h: int = 64, w: int = 128, seed: int = 0) -> np.ndarray:
+    """A smooth image that wraps around in x, as a panorama does."""
+    rng = np.random.default_rng(seed)
+    ys, xs = np.mgrid[0:h, 0:w]
+    img = np.zeros((h, w))
+    for _ in range(6):
+        k, a, ph = rng.integers(1, 4), rng.uniform(0.2, 1), rng.uniform(0, 2 * np.pi)
+        img += a * np.cos(2 * np.pi * k * xs / w + ph) * np.cos(np.pi * rng.integers(0, 3) * (ys + 0.5) / h)
+    return img
+
+
+def test_poisson_rebuilds_an_image_from_its_gradients() -> None:
+    img = _smooth()
+    gx = 0.5 * (np.roll(img, -1, 1) - np.roll(img, 1, 1))
+    gy = np.gradient(img, axis=0)
+    out = poisson(gx, gy)
+    err = (out - out.mean()) - (img - img.mean())
+    assert np.abs(err).max() < 0.02 * np.ptp(img)
+    # the wrap is real: a step at the seam is a gradient like any other, not a border
+    assert abs(float(np.corrcoef(out.ravel(), img.ravel())[0, 1])) > 0.999
+
+
+def test_mosaic_png_round_trip_and_scores() -> None:
+    img = _smooth().astype(np.float32)
+    seen = np.zeros(img.shape, bool)
+    seen[10:50, 20:100] = True
+    back, mask = from_png16(to_png16(img, seen))
+    assert np.array_equal(mask, seen)
+    scores = image_scores(back, mask, img)
+    assert scores["psnr_db"] > 60 and scores["ssim"] > 0.999  # 16 bits over the range: exact but for rounding
+    inverted = image_scores(-back, mask, img)  # a mosaic with the gradients' sign wrong is not a fit
+    assert inverted["psnr_db"] < 15 and inverted["ssim"] < 0.5
+    noisy = image_scores(back + np.random.default_rng(1).normal(0, 2000, back.shape).astype(np.float32), mask, img)
+    assert 10 < noisy["psnr_db"] < scores["psnr_db"] and noisy["ssim"] < scores["ssim"]
+
+
+def test_mosaic_and_eval_mosaic_commands(tmp_path: Path) -> None:
+    """`etam sim rotation` -> `etam mosaic` -> `etam eval mosaic`, as a user runs them; and their errors."""
+    h5, png = tmp_path / "spin.h5", tmp_path / "mosaic.png"
+    subprocess.run(etam_argv("sim", "rotation", "--out", str(h5), "--duration", "0.6", "--seed", "3", "--json"),
+                   check=True, capture_output=True, timeout=180)
+    made = subprocess.run(etam_argv("mosaic", str(h5), "--out", str(png), "--json"), capture_output=True, text=True,
+                          timeout=180)
+    assert made.returncode == 0, made.stderr
+    summary = json.loads(made.stdout)
+    assert summary["events_used"] > 0.5 * summary["events"] and 0.02 < summary["observed"] < 0.5
+    image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert image.dtype == np.uint16 and image.shape == (1024, 2048)
+    scored = subprocess.run(etam_argv("eval", "mosaic", "--mosaic", str(png), "--truth", str(h5), "--json"),
+                            capture_output=True, text=True, timeout=120)
+    assert scored.returncode == 0, scored.stderr
+    scores = json.loads(scored.stdout)
+    assert scores["psnr_db"] > 15 and scores["ssim"] > 0.85, scores
+
+    small = tmp_path / "small.png"  # another size is scored at the truth's
+    subprocess.run(etam_argv("mosaic", str(h5), "--out", str(small), "--size", "1024x512", "--json"), check=True,
+                   capture_output=True, timeout=180)
+    half = json.loads(subprocess.run(etam_argv("eval", "mosaic", "--mosaic", str(small), "--truth", str(h5), "--json"),
+                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    assert half["psnr_db"] > 13 and 0.02 < half["observed"] < 0.5
+
+    objects, eight_bit = tmp_path / "objects.h5", tmp_path / "grey.png"
+    subprocess.run(etam_argv("sim", "objects", "--out", str(objects), "--duration", "0.2", "--json"), check=True,
+                   capture_output=True, timeout=120)
+    cv2.imwrite(str(eight_bit), np.zeros((8, 16), np.uint8))
+    for argv, says in ((("mosaic", str(objects)), "no poses to map with"),
+                       (("mosaic", str(h5), "--size", "big"), "--size"),
+                       (("mosaic", str(h5), "--out", str(tmp_path / "no" / "m.png")), "does not exist"),
+                       (("eval", "mosaic", "--mosaic", str(h5), "--truth", str(h5)), "not a readable image"),
+                       (("eval", "mosaic", "--mosaic", str(eight_bit), "--truth", str(h5)), "16-bit"),
+                       (("eval", "mosaic", "--mosaic", str(png), "--truth", str(objects)), "no truth panorama")):
+        bad = subprocess.run(etam_argv(*argv), capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and says in bad.stderr and "Traceback" not in bad.stderr, (argv, bad.stderr)
