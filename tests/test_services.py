@@ -223,3 +223,30 @@ def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: 
         assert len(after.points) < len(whole.points)
         pong = _query(s, cmd, Command(op="ping"))
         assert pong.ok and pong.result["poses"] == "truth"
+
+
+def test_mapper_service_builds_the_mosaic_of_a_spinning_camera(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
+    """camera (sim:rotation) -> mapper --build mosaic --poses truth: the mosaic is published as a 16-bit
+    PNG Image that grows as the camera turns, and `save` writes one that `etam eval mosaic` scores."""
+    from services.mapper.offline import eval_mosaic
+    from services.mapper.mosaic import from_png16
+
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", "--source", "sim:rotation", *common), \
+            spawn("mapper", "--build", "mosaic", "--poses", "truth", *common), client_session(router) as s:
+        mosaics = Collector(s, f"etam/{rig}/mapper/map/mosaic")
+        first, *_, later = wait_for(lambda: mosaics.of(Image)[:3] if len(mosaics.of(Image)) >= 3 else None, 120,
+                                    "three mosaics")
+        seen = [from_png16(image_to_array(m))[1].mean() for m in (first, later)]
+        assert first.width == 2048 and first.height == 1024 and 0 < seen[0] < seen[1] < 0.5
+        cmd = f"etam/{rig}/mapper/map/cmd"
+        path = tmp_path / "mosaic.png"
+        saved = _query(s, cmd, Command(op="save", args={"path": str(path)}))
+        assert saved.ok and saved.result["observed"] >= seen[1]
+        pong = _query(s, cmd, Command(op="ping"))
+        assert pong.ok and pong.result["mode"] == "mosaic" and pong.result["mosaic_events"] > 0
+    # scored against the panorama the live simulator renders (seed 0, as `etam sim rotation` writes it)
+    truth = tmp_path / "spin.h5"
+    subprocess.run(etam_argv("sim", "rotation", "--out", str(truth), "--duration", "0.05", "--json"), check=True,
+                   capture_output=True, timeout=120)
+    assert eval_mosaic(path, truth)["psnr_db"] > 12
