@@ -273,12 +273,17 @@ def _map_params(args: argparse.Namespace):  # noqa: ANN202 - KeyframeParams
     return KeyframeParams(SweepParams(planes=args.planes, z_min_m=near, z_max_m=far))
 
 
+def _require_files(*paths: str | None) -> None:
+    """Input files checked before the work starts (None: an optional one not given)."""
+    for path in paths:
+        if path and not Path(path).exists():
+            raise config.ConfigError(f"{path}: no such file")
+
+
 def _cmd_map(args: argparse.Namespace) -> int:
     from services.mapper.offline import build_map
 
-    for name in ("input", "poses"):
-        if getattr(args, name) and not Path(getattr(args, name)).exists():
-            raise config.ConfigError(f"{getattr(args, name)}: no such file")
+    _require_files(args.input, args.poses)
     summary = build_map(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None,
                         _map_params(args), progress=not args.json)
     print(json.dumps(summary) if args.json else f"wrote {summary['points']} map points from {summary['keyframes']} "
@@ -289,9 +294,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
 def _cmd_mosaic(args: argparse.Namespace) -> int:
     from services.mapper.offline import build_mosaic
 
-    for name in ("input", "poses"):
-        if getattr(args, name) and not Path(getattr(args, name)).exists():
-            raise config.ConfigError(f"{getattr(args, name)}: no such file")
+    _require_files(args.input, args.poses)
     summary = build_mosaic(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None,
                            _mosaic_params(args), progress=not args.json)
     print(json.dumps(summary) if args.json else f"wrote a {summary['size'][0]}x{summary['size'][1]} mosaic "
@@ -303,9 +306,7 @@ def _cmd_mosaic(args: argparse.Namespace) -> int:
 def _cmd_eval_mosaic(args: argparse.Namespace) -> int:
     from services.mapper.offline import eval_mosaic
 
-    for path in (args.mosaic, args.truth):
-        if not Path(path).exists():
-            raise config.ConfigError(f"{path}: no such file")
+    _require_files(args.mosaic, args.truth)
     scores = eval_mosaic(Path(args.mosaic), Path(args.truth))
     print(json.dumps(scores)) if args.json else _print_scores(scores)
     return 0
@@ -319,9 +320,7 @@ def _print_scores(scores: dict) -> None:
 def _cmd_eval_map(args: argparse.Namespace) -> int:
     from services.mapper.offline import eval_map
 
-    for path in (args.cloud, args.truth):
-        if not Path(path).exists():
-            raise config.ConfigError(f"{path}: no such file")
+    _require_files(args.cloud, args.truth)
     scores = eval_map(Path(args.cloud), Path(args.truth))
     print(json.dumps(scores)) if args.json else _print_scores(scores)
     return 0

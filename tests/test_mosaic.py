@@ -80,6 +80,8 @@ def test_mosaic_and_eval_mosaic_commands(tmp_path: Path) -> None:
                    capture_output=True, timeout=120)
     cv2.imwrite(str(eight_bit), np.zeros((8, 16), np.uint8))
     for argv, says in ((("mosaic", str(objects)), "no poses to map with"),
+                       (("mosaic", str(tmp_path / "none.h5")), "no such file"),
+                       (("eval", "mosaic", "--mosaic", str(png), "--truth", str(tmp_path / "none.h5")), "no such file"),
                        (("mosaic", str(h5), "--size", "big"), "--size"),
                        (("mosaic", str(h5), "--out", str(tmp_path / "no" / "m.png")), "does not exist"),
                        (("eval", "mosaic", "--mosaic", str(h5), "--truth", str(h5)), "not a readable image"),
