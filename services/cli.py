@@ -138,7 +138,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level, services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS else ())),
-        mapper_args=("--build", MAPPED_SIMS.get(args.source, "depth")),
+        # the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
+        mapper_args=("--build", "mosaic", "--size", "1024x512") if MAPPED_SIMS.get(args.source) == "mosaic" else (),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
                      *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
