@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numba
@@ -31,20 +32,31 @@ FIGURES = ("points", "median_abs_error_m", "mean_abs_error_m", "median_error_pct
 
 def run(quick: bool = False) -> list[dict]:
     seeds = HELD_OUT_SEEDS[:1] if quick else HELD_OUT_SEEDS
-    duration_s = 4.0 if quick else 10.0
-    rows = []
     with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
-        for seed in seeds:
-            h5, ply = Path(tmp) / f"6dof{seed}.h5", Path(tmp) / f"{seed}.ply"
-            simulate("6dof", h5, duration_s, seed=seed, progress=False)
+        def score(h5: Path, seed: int) -> dict:
+            ply = Path(tmp) / f"{seed}.ply"
             built = build_map(h5, ply, progress=False)
-            scores = eval_map(ply, h5)
-            rows.append({"stage": "mapping accuracy", "scene": "6dof", "seed": seed, "duration_s": duration_s,
-                         "keyframes": built["keyframes"], **{k: scores[k] for k in FIGURES}})
-        if len(rows) > 1:
-            rows.append({"stage": "mapping accuracy", "scene": "6dof", "seed": f"mean of {len(rows)}",
-                         "duration_s": duration_s, **{k: float(np.mean([r[k] for r in rows])) for k in FIGURES}})
+            return {"keyframes": built["keyframes"], **eval_map(ply, h5)}
+
+        rows = per_seed("mapping accuracy", "6dof", seeds, 4.0 if quick else 10.0, score, FIGURES, Path(tmp))
         rows.extend(speed(Path(tmp) / "speed.h5"))
+    return rows
+
+
+def per_seed(stage: str, scene: str, seeds: tuple[int, ...], duration_s: float,
+             score: Callable[[Path, int], dict], figures: tuple[str, ...], folder: Path) -> list[dict]:
+    """A row per seed: `scene` simulated for `duration_s` into `folder`, then `score`d (its `figures`, and
+    its keyframes where it gives them); and, for several seeds, a row of their means."""
+    rows = []
+    for seed in seeds:
+        h5 = folder / f"{scene}{seed}.h5"
+        simulate(scene, h5, duration_s, seed=seed, progress=False)
+        scores = score(h5, seed)
+        rows.append({"stage": stage, "scene": scene, "seed": seed, "duration_s": duration_s,
+                     **{k: scores[k] for k in ("keyframes", *figures) if k in scores}})
+    if len(rows) > 1:
+        rows.append({"stage": stage, "scene": scene, "seed": f"mean of {len(rows)}", "duration_s": duration_s,
+                     **{k: float(np.mean([r[k] for r in rows])) for k in figures}})
     return rows
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.mapping import per_seed
 from services.camera.formats import open_recording
-from services.camera.offline import simulate
 from services.mapper.mosaic import Mosaic, MosaicParams
 from services.mapper.offline import build_mosaic, eval_mosaic
 from services.mapper.trajectory import Trajectory
@@ -28,27 +28,19 @@ FIGURES = ("psnr_db", "ssim", "observed")
 
 def run(quick: bool = False) -> list[dict]:
     seeds = HELD_OUT_SEEDS[:1] if quick else HELD_OUT_SEEDS
-    duration_s = 1.0 if quick else 4.0
-    rows = []
     with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
-        for seed in seeds:
-            h5, png = Path(tmp) / f"rotation{seed}.h5", Path(tmp) / f"{seed}.png"
-            simulate("rotation", h5, duration_s, seed=seed, progress=False)
-            built = build_mosaic(h5, png, progress=False)
-            scores = eval_mosaic(png, h5)
-            rows.append({"stage": "mosaic quality", "scene": "rotation", "seed": seed, "duration_s": duration_s,
-                         "events": built["events"], **{k: scores[k] for k in FIGURES}})
-            if seed == seeds[0]:
-                rows.extend(speed(h5))
-        if len(seeds) > 1:
-            quality = [r for r in rows if r["stage"] == "mosaic quality"]
-            rows.append({"stage": "mosaic quality", "scene": "rotation", "seed": f"mean of {len(quality)}",
-                         "duration_s": duration_s, **{k: float(np.mean([r[k] for r in quality])) for k in FIGURES}})
+        def score(h5: Path, seed: int) -> dict:
+            png = Path(tmp) / f"{seed}.png"
+            build_mosaic(h5, png, progress=False)
+            return eval_mosaic(png, h5)
+
+        rows = per_seed("mosaic quality", "rotation", seeds, 1.0 if quick else 4.0, score, FIGURES, Path(tmp))
+        rows.extend(speed(Path(tmp) / f"rotation{seeds[0]}.h5"))
     return rows
 
 
 def speed(h5: Path, rounds: int = 3) -> list[dict]:
-    """The EKF's events per second over the first 2 M events of `h5`, and Poisson times."""
+    """The EKF's events per second over the first 2 M events of `h5` (simulated already), and Poisson times."""
     with open_recording(h5) as rec:
         events = np.concatenate(list(rec.chunks()))[:2_000_000]
         trajectory, K, w, h = Trajectory(rec.truth.poses), rec.K_or_default(), rec.width, rec.height

@@ -503,7 +503,7 @@ def peek(payload: bytes) -> dict[str, Any]:
 
 
 def image_from_array(t_us: int, img: np.ndarray, encoding: str = "jpeg", quality: int = 80) -> Image:
-    """Compress an 8-bit image (HxW or HxWx3 BGR) into an Image message."""
+    """Compress an 8-bit image (HxW or HxWx3 BGR; png also takes 16-bit grey) into an Image message."""
     import cv2
 
     h, w = img.shape[:2]

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import scipy.fft
+from scipy.spatial.transform import Rotation
 
 from services.mapper.trajectory import Trajectory
 
@@ -86,6 +87,10 @@ class Mosaic:
         """The log intensity (up to an offset) whose gradients fit the map's best, H x W float32."""
         return poisson(self.gradient[..., 0], self.gradient[..., 1])
 
+    def image(self) -> np.ndarray:
+        """The mosaic as `to_png16` grey levels (what `etam mosaic` writes and the service publishes)."""
+        return to_png16(self.log_intensity(), self.observed())
+
 
 def to_png16(log_intensity: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """The mosaic as 16-bit grey levels, linear in log intensity over the observed pixels' range; 0 marks
@@ -130,8 +135,6 @@ def poisson(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
 def _samples(R: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Quaternions (w, x, y, z; signs kept continuous for interpolation) of rotations N x 3 x 3, and the
     world-frame angular velocity (rad/s) between consecutive samples (N - 1 x 3)."""
-    from scipy.spatial.transform import Rotation
-
     rot = Rotation.from_matrix(R)
     q = rot.as_quat()[:, [3, 0, 1, 2]]
     flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))

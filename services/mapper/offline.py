@@ -17,7 +17,7 @@ from services.camera.simulator import LOG_EPS
 from services.mapper.cloud import VoxelMap
 from services.mapper.evaluation import coverage, depth_errors, depth_scores, image_scores, project
 from services.mapper.keyframes import KeyframeMapper, KeyframeParams
-from services.mapper.mosaic import Mosaic, MosaicParams, from_png16, to_png16
+from services.mapper.mosaic import Mosaic, MosaicParams, from_png16
 from services.mapper.ply import read_map, write_map
 from services.mapper.trajectory import Trajectory, read_tum
 
@@ -57,12 +57,18 @@ def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: Mosaic
         for chunk in _posed_chunks(rec, trajectory, progress):
             n_events += len(chunk)
             mosaic.add(chunk, trajectory)
-    observed = mosaic.observed()
-    if not cv2.imwrite(str(out), to_png16(mosaic.log_intensity(), observed)):
-        raise OSError(f"{out}: cannot write a PNG there")
+    observed = write_mosaic(out, mosaic)
     return {"input": str(src), "output": str(out), "events": n_events, "events_used": mosaic.events,
-            "size": [mosaic.params.width, mosaic.params.height], "observed": float(observed.mean()),
+            "size": [mosaic.params.width, mosaic.params.height], "observed": observed,
             "poses": str(poses) if poses else "truth"}
+
+
+def write_mosaic(path: Path, mosaic: Mosaic) -> float:
+    """The mosaic as a 16-bit PNG (`Mosaic.image`); the share of the panorama it observed."""
+    image = mosaic.image()
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"{path}: cannot write a PNG there")
+    return float((image > 0).mean())
 
 
 def eval_mosaic(mosaic: Path, truth: Path) -> dict[str, Any]:

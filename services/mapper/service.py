@@ -22,7 +22,6 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from services import keys
@@ -31,7 +30,8 @@ from services.messages import (
 )
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
-from services.mapper.mosaic import Mosaic, MosaicParams, to_png16
+from services.mapper.mosaic import Mosaic, MosaicParams
+from services.mapper.offline import write_mosaic
 from services.mapper.ply import write_map
 from services.mapper.trajectory import Trajectory
 from services.runtime import Service, ServiceOptions
@@ -144,7 +144,7 @@ class MapperService(Service):
         if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
             return
         self._mosaic_published = time.monotonic()
-        image = await asyncio.to_thread(lambda: to_png16(mosaic.log_intensity(), mosaic.observed()))
+        image = await asyncio.to_thread(mosaic.image)
         t_us = int(ready["t"][-1])
         out.publish(image_from_array(t_us, image, "png"))
         self.status.update(mosaic_events=mosaic.events, mosaic_observed=round(float((image > 0).mean()), 4))
@@ -193,14 +193,11 @@ class MapperService(Service):
             return Reply(ok=True, result={"path": path, "points": n})
         return None
 
-
     def _save_mosaic(self, path: str) -> Reply:
         """The mosaic as `etam mosaic` writes it (so `etam eval mosaic` reads it)."""
         if self.mosaic is None:
             return Reply(ok=False, error="save: no mosaic yet (no events with poses so far)")
-        if not cv2.imwrite(path, to_png16(self.mosaic.log_intensity(), self.mosaic.observed())):
-            raise OSError(f"cannot write a PNG at {path}")
-        return Reply(ok=True, result={"path": path, "observed": float(self.mosaic.observed().mean())})
+        return Reply(ok=True, result={"path": path, "observed": write_mosaic(Path(path), self.mosaic)})
 
 
 def _matrix(kf: Keyframe) -> np.ndarray:
