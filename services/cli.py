@@ -50,9 +50,12 @@ def _zenoh_settings(args: argparse.Namespace) -> config.ZenohSettings:
     return settings
 
 
-def _sweep_flags(p: argparse.ArgumentParser) -> None:
+def _sweep_flags(p: argparse.ArgumentParser, method_default: str) -> None:
+    p.add_argument("--method", choices=("sweep", "stereo"), default=None,
+                   help="sweep: space sweep of one camera's events (EMVS); stereo: time-surface matching between "
+                        f"two cameras (ESVO) (default {method_default})")
     p.add_argument("--depth-range", default="0.5,8", metavar="MIN,MAX",
-                   help="nearest and farthest depth the sweep looks at, m (default 0.5,8)")
+                   help="nearest and farthest depth it looks at, m (default 0.5,8)")
     p.add_argument("--planes", type=int, default=100, help="depth planes of the sweep (default 100)")
 
 
@@ -286,9 +289,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     _require_files(args.input, args.poses)
     summary = build_map(Path(args.input), _output(args.out), Path(args.poses) if args.poses else None,
-                        _map_params(args), progress=not args.json)
+                        _map_params(args), progress=not args.json, method=args.method)
     print(json.dumps(summary) if args.json else f"wrote {summary['points']} map points from {summary['keyframes']} "
-          f"keyframes ({summary['events']} events, {summary['poses']} poses) to {args.out}")
+          f"keyframes ({summary['method']}, {summary['events']} events, {summary['poses']} poses) to {args.out}")
     return 0
 
 
@@ -439,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--build", default="depth", choices=("depth", "mosaic"),
                    help="what to build: depth, a semi-dense 3D map (default); mosaic, the panorama of a rotating "
                         "camera (on mapper/map/mosaic)")
-    _sweep_flags(p)
+    p.add_argument("--right", default="cam1", help="with --method stereo: the right camera of the pair (default cam1)")
+    _sweep_flags(p, "sweep")
     _mosaic_flags(p)
     p.set_defaults(func=_cmd_mapper)
 
@@ -489,12 +493,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 
-    p = sub.add_parser("map", help="semi-dense 3D map of a recording (EMVS space sweep) into a PLY point cloud")
+    p = sub.add_parser("map", help="semi-dense 3D map of a recording (EMVS space sweep, or ESVO stereo for two "
+                                   "cameras) into a PLY point cloud")
     p.add_argument("input", help="any readable event file")
     p.add_argument("--poses", metavar="TRAJ.tum", help="camera poses (TUM: t tx ty tz qx qy qz qw, T_world_cam); "
                                                         "default: the file's truth poses")
     p.add_argument("--out", default="cloud.ply", help="PLY to write (default cloud.ply)")
-    _sweep_flags(p)
+    _sweep_flags(p, "stereo for a file of two cameras, such as etam sim stereo writes; else sweep")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_map)
 

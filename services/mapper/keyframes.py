@@ -9,6 +9,7 @@ guess between the planes' limits before the first.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,14 +38,23 @@ class Keyframe:
     events: int
 
 
-class KeyframeMapper:
-    """Feeds events (with a trajectory covering their times) and returns each keyframe as it completes."""
+Build = Callable[[np.ndarray, Trajectory], Keyframe]  # a segment's items and the trajectory to its keyframe
 
-    def __init__(self, K: np.ndarray, width: int, height: int, params: KeyframeParams | None = None) -> None:
+
+class KeyframeMapper:
+    """Feeds events (with a trajectory covering their times) and returns each keyframe as it completes.
+
+    A segment's events are swept (`sweep_keyframe`) unless `build` makes keyframes of other items with a
+    time field `t` (a stereo rig's depth estimates)."""
+
+    def __init__(self, K: np.ndarray, width: int, height: int, params: KeyframeParams | None = None,
+                 build: Build | None = None) -> None:
         self.K, self.width, self.height = np.asarray(K, np.float64), width, height
         self.params = params or KeyframeParams()
         self.depths = sweep.plane_depths(self.params.sweep)
         self.scene_depth = float(np.sqrt(self.depths[0] * self.depths[-1]))
+        self.build = build or (lambda events, trajectory: sweep_keyframe(
+            events, trajectory, self.K, width, height, self.depths, self.params.sweep))
         self._restart()
 
     def _restart(self) -> None:
@@ -99,8 +109,7 @@ class KeyframeMapper:
         """The keyframe of the events held so far (the segment ends here)."""
         events = np.concatenate(self._chunks)
         self._restart()
-        keyframe = sweep_keyframe(events, trajectory, self.K, self.width, self.height, self.depths,
-                                  self.params.sweep)
+        keyframe = self.build(events, trajectory)
         if len(keyframe.points):
             local = keyframe.depth[np.isfinite(keyframe.depth)]
             self.scene_depth = float(np.median(local))
@@ -122,8 +131,15 @@ def sweep_keyframe(events: np.ndarray, trajectory: Trajectory, K: np.ndarray, wi
     dsi = np.zeros((len(depths), height, width), np.float32)
     sweep.vote(dsi, sweep.ray_coefficients(xy, K, R_ref_cam, t_ref_cam, which), depths)
     depth, conf = sweep.semi_dense_depth(dsi, depths, params, K, t_ref_cam[::max(len(t_ref_cam) // 32, 1)])
+    return lift(t_ref, R_ref, p_ref, depth, conf, K, len(events))
+
+
+def lift(t_us: int, R: np.ndarray, p: np.ndarray, depth: np.ndarray, confidence: np.ndarray, K: np.ndarray,
+         n: int) -> Keyframe:
+    """The keyframe of a reference view's depth map (H x W, NaN where none) and per-pixel confidence: its
+    finite pixels lifted into world points; `n` items made it."""
     ys, xs = np.nonzero(np.isfinite(depth))
     z = depth[ys, xs].astype(np.float64)
     cam = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], axis=1)
-    points = (cam @ R_ref.T + p_ref).astype(np.float32)
-    return Keyframe(t_ref, R_ref, p_ref, depth, points, conf[ys, xs].astype(np.float32), len(events))
+    points = (cam @ R.T + p).astype(np.float32)
+    return Keyframe(t_us, R, p, depth, points, confidence[ys, xs].astype(np.float32), n)

@@ -19,31 +19,85 @@ from services.mapper.evaluation import coverage, depth_errors, depth_scores, ima
 from services.mapper.keyframes import KeyframeMapper, KeyframeParams
 from services.mapper.mosaic import Mosaic, MosaicParams, from_png16
 from services.mapper.ply import read_map, write_map
+from services.mapper.stereo import StereoMapper, StereoParams
 from services.mapper.trajectory import Trajectory, read_tum
 
 EDGE_WINDOW_US = 10_000  # truth edge pixels: those that fired at least twice this near a scored frame's time
 EDGE_EVENTS = 2
 
 
+METHODS = ("sweep", "stereo")
+
+
 def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeParams | None = None,
-              voxel_m: float = 0.03, progress: bool = True) -> dict[str, Any]:
-    """Sweeps a recording's events into keyframes with the poses of `poses` (a TUM file) or the file's
-    own truth poses, fuses them into a voxel map and writes it as PLY with the keyframes' times and poses."""
+              voxel_m: float = 0.03, progress: bool = True, method: str | None = None,
+              stereo: StereoParams | None = None) -> dict[str, Any]:
+    """Builds keyframes of a recording's events with the poses of `poses` (a TUM file) or the file's own
+    truth poses, by the space sweep of the first camera or (`method` "stereo", the default for a file of
+    two cameras) stereo matching of the first two, fuses them into a voxel map and writes it as PLY with
+    the keyframes' times and poses."""
     cloud = VoxelMap(voxel_m)
     with open_recording(src) as rec:
-        mapper = KeyframeMapper(rec.K_or_default(), rec.width, rec.height, params)
-        trajectory = _trajectory(rec, src, poses)
+        rig = rec.rig()
+        method = method or ("stereo" if len(rig) > 1 else "sweep")
+        if method not in METHODS:
+            raise ValueError(f"mapping method {method!r} is not one of {', '.join(METHODS)}")
+        if method == "stereo" and len(rig) < 2:
+            raise FormatError(src, "stereo mapping needs a file of two cameras (etam sim stereo writes one)")
+        K, trajectory = rec.K_or_default(), _trajectory(rec, src, poses)
         n_events = 0
-        for chunk in _posed_chunks(rec, trajectory, progress):
-            n_events += len(chunk)
-            for kf in mapper.add(chunk, trajectory):
-                cloud.add_keyframe(kf)
+        if method == "stereo":
+            try:
+                mapper = StereoMapper(K, rig[1].K_or_default(), _left_right(rig[0], rig[1]), rec.width,
+                                      rec.height, params, stereo)
+            except ValueError as exc:  # a rig that cannot be rectified
+                raise FormatError(src, str(exc)) from None
+            for left, right in _paired_chunks(rig[0], rig[1], trajectory, progress):
+                n_events += len(left) + len(right)
+                for kf in mapper.add(left, right, trajectory):
+                    cloud.add_keyframe(kf)
+        else:
+            mapper = KeyframeMapper(K, rec.width, rec.height, params)
+            for chunk in _posed_chunks(rec, trajectory, progress):
+                n_events += len(chunk)
+                for kf in mapper.add(chunk, trajectory):
+                    cloud.add_keyframe(kf)
         last = mapper.flush(trajectory)
         if last is not None:
             cloud.add_keyframe(last)
-    n_points = write_map(out, cloud, f"etam map of {src.name}: voxel {voxel_m} m")
-    return {"input": str(src), "output": str(out), "events": n_events, "keyframes": len(cloud.views),
-            "points": n_points, "poses": str(poses) if poses else "truth"}
+        for other in rig[1:]:
+            other.close()
+    n_points = write_map(out, cloud, f"etam map of {src.name} ({method}): voxel {voxel_m} m")
+    return {"input": str(src), "output": str(out), "method": method, "events": n_events,
+            "keyframes": len(cloud.views), "points": n_points, "poses": str(poses) if poses else "truth"}
+
+
+def _left_right(left: Recording, right: Recording) -> np.ndarray:
+    """The right camera's pose in the left camera's frame, from their poses in the rig (T_body_cam)."""
+    poses = [r.calibration.T_body_cam if r.calibration is not None else None for r in (left, right)]
+    if poses[1] is None:
+        raise FormatError(right.path, "the second camera has no pose in the rig (calibration/T_body_cam)")
+    return np.linalg.inv(poses[0] if poses[0] is not None else np.eye(4)) @ poses[1]
+
+
+def _paired_chunks(left: Recording, right: Recording, trajectory: Trajectory,
+                   progress: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Both cameras' posed events, in chunks of the left camera's and the right camera's up to the same time."""
+    rights = _posed_chunks(right, trajectory, False)
+    held: list[np.ndarray] = []
+    for chunk in _posed_chunks(left, trajectory, progress):
+        if not len(chunk):
+            continue
+        until = chunk["t"][-1]
+        while not held or held[-1]["t"][-1] <= until:
+            nxt = next(rights, None)
+            if nxt is None:
+                break
+            held.append(nxt)
+        pending = np.concatenate(held) if held else np.zeros(0, chunk.dtype)
+        cut = int(np.searchsorted(pending["t"], until, side="right"))
+        held = [pending[cut:]] if cut < len(pending) else []
+        yield chunk, pending[:cut]
 
 
 def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: MosaicParams | None = None,
