@@ -19,7 +19,7 @@ import time
 import numpy as np
 import zenoh
 
-from benchmarks import free_port
+from benchmarks import free_port, join
 from services.config import ZenohSettings
 from services.messages import EventPacket, Tracks, decode
 
@@ -33,18 +33,6 @@ WARMUP_S = 3.0  # processes started, numba kernels loaded, tracks confirmed
 def run(quick: bool = False) -> list[dict]:
     """Latency without the dashboard (a drone's rig, viewed from another machine) and with it."""
     return [_measure(quick, web=False), _measure(quick, web=True)]
-
-
-def _join(conf: zenoh.Config, rig: subprocess.Popen, wait_s: float = 30.0) -> zenoh.Session | None:
-    """A client session on the rig's router once it listens (its start takes seconds on a busy
-    machine); None if the rig exits or does not listen in `wait_s`."""
-    deadline = time.monotonic() + wait_s
-    while rig.poll() is None and time.monotonic() < deadline:
-        try:
-            return zenoh.open(conf)
-        except zenoh.ZError:
-            time.sleep(0.2)
-    return None
 
 
 def _measure(quick: bool, web: bool) -> dict:
@@ -80,7 +68,7 @@ def _measure(quick: bool, web: bool) -> dict:
             *(("--web-port", str(free_port())) if web else ("--no-web",))]
     rig = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
     try:
-        session = _join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), rig)
+        session = join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), rig)
         if session is None:
             return {"stage": "tracking latency in etam up", "web": web, "error": f"no router at {endpoint}"}
         with session:

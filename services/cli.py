@@ -118,8 +118,13 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
 def _cmd_mapper(args: argparse.Namespace) -> int:
     from services.mapper.service import MapperService
 
-    return MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses,
-                         mode=args.build, mosaic_params=_mosaic_params(args)).run()
+    try:
+        service = MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses,
+                                mode=args.build, mosaic_params=_mosaic_params(args), method=args.method or "sweep",
+                                right=args.right, max_rate=args.max_rate * 1e6)
+    except ValueError as exc:
+        raise config.ConfigError(str(exc)) from None
+    return service.run()
 
 
 def _cmd_web(args: argparse.Namespace) -> int:
@@ -128,8 +133,10 @@ def _cmd_web(args: argparse.Namespace) -> int:
     return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
 
 
-# sources whose truth poses the mapper maps with in `etam up` (and how), until the tracker's ego-motion gives poses
-MAPPED_SIMS = {"sim:6dof": "depth", "sim:stereo": "depth", "sim:rotation": "mosaic"}
+# sources whose truth poses the mapper maps with in `etam up`, and its flags, until the tracker's ego-motion gives poses;
+# the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
+MAPPED_SIMS = {"sim:6dof": (), "sim:stereo": ("--method", "stereo"),
+               "sim:rotation": ("--build", "mosaic", "--size", "1024x512")}
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -141,8 +148,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level, services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS else ())),
-        # the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
-        mapper_args=("--build", "mosaic", "--size", "1024x512") if MAPPED_SIMS.get(args.source) == "mosaic" else (),
+        mapper_args=MAPPED_SIMS.get(args.source, ()),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
                      *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
@@ -443,6 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what to build: depth, a semi-dense 3D map (default); mosaic, the panorama of a rotating "
                         "camera (on mapper/map/mosaic)")
     p.add_argument("--right", default="cam1", help="with --method stereo: the right camera of the pair (default cam1)")
+    p.add_argument("--max-rate", type=float, default=0.4, metavar="MEV_S",
+                   help="the sweep takes at most this many million events per second of stream, every k-th "
+                        "(so that it keeps up with the camera on few cores; 0: all; default 0.4)")
     _sweep_flags(p, "sweep")
     _mosaic_flags(p)
     p.set_defaults(func=_cmd_mapper)

@@ -37,6 +37,7 @@ USAGE_ERROR = 2  # a child's exit code for a bad flag, source or config: restart
 STOP_GRACE_S = 3.0
 SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop keeps its liveliness token)
 VIEWER_NICE = 10  # the dashboard yields the CPU to the services a robot acts on
+MAPPER_NICE = 5  # ... and the mapper (keyframes every few seconds) to the tracker (tracks every 10 ms)
 
 
 def _prepare_child(nice: int) -> None:
@@ -231,7 +232,8 @@ def _children(opts: UpOptions) -> list[Child]:
     for name in opts.services:
         extra = {"camera": ["--source", opts.source, *opts.camera_args],
                  "mapper": ["--poses", "truth", *opts.mapper_args]}.get(name, [])
-        out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra]))
+        out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra],
+                         nice=MAPPER_NICE if name == "mapper" else 0))
     if opts.web:
         out.append(Child("web", [sys.executable, "-m", "services.cli", "web", *common, "--port", str(opts.web_port)],
                          nice=VIEWER_NICE))

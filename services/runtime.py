@@ -309,16 +309,16 @@ class Service:
 
         self._declared.append(self._session().declare_queryable(keyexpr, answer))
 
-    async def follow_intrinsics(self, cam: str, known: dict[str, Any], missing: Callable[[], bool]) -> None:
-        """Keeps `known` (camera name -> K, 3 x 3) up to date from the CameraInfo of the rig's cameras
-        matching `cam`, and asks for it (every camera answers) four times a second while `missing()`."""
+    async def follow_cameras(self, cam: str, known: dict[str, CameraInfo], missing: Callable[[], bool]) -> None:
+        """Keeps `known` (camera name -> its CameraInfo: size, K, pose in the rig) up to date from the rig's
+        cameras matching `cam`, and asks for it (every camera answers) four times a second while `missing()`."""
         infos = keys.key(self.rig, "camera", cam, "info")
         updates = self.subscribe(infos, CameraInfo, policy="latest")
 
         def keep(key: str, msg: Message) -> None:
             parsed = keys.parse(key)
             if isinstance(msg, CameraInfo) and parsed:
-                known[parsed[2]] = np.asarray(msg.K, np.float64).reshape(3, 3)
+                known[parsed[2]] = msg
 
         async def ask() -> None:
             while True:

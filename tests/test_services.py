@@ -14,7 +14,7 @@ import numpy as np
 import zenoh
 
 from services.messages import (
-    EVENT_DTYPE, CameraInfo, Command, EventPacket, Image, Reply, Stats, Tracks, decode, image_to_array,
+    EVENT_DTYPE, CameraInfo, Command, PointCloud, EventPacket, Image, Reply, Stats, Tracks, decode, image_to_array,
 )
 from tests.conftest import ROOT, client_session, etam_argv, free_port, spawn, wait_alive, wait_for
 
@@ -223,6 +223,27 @@ def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: 
         assert len(after.points) < len(whole.points)
         pong = _query(s, cmd, Command(op="ping"))
         assert pong.ok and pong.result["poses"] == "truth"
+
+
+def test_mapper_service_maps_a_stereo_rig(router: str, rig: str) -> None:
+    """camera (sim:stereo, two cameras) -> mapper --method stereo --poses truth: a keyframe's depth map agrees
+    with the simulator's truth depth of the left camera at its time."""
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", "--source", "sim:stereo", *common), \
+            spawn("mapper", "--method", "stereo", "--poses", "truth", *common), client_session(router) as s:
+        truths = Collector(s, f"etam/{rig}/camera/cam0/truth/depth")
+        depths = Collector(s, f"etam/{rig}/mapper/map/depth")
+        points = Collector(s, f"etam/{rig}/mapper/map/points")
+        depth_msg = wait_for(lambda: depths.of(Image), 150, "a stereo keyframe's depth map")[0]
+        assert len(wait_for(lambda: points.of(PointCloud), 10, "its points")[0].points) > 300
+        truth = min(truths.of(Image), key=lambda m: abs(m.stamp - depth_msg.stamp))
+        assert abs(truth.stamp - depth_msg.stamp) <= 50_000  # truth depth comes at 10 Hz; the camera moves ~1 cm in that
+        depth, true = image_to_array(depth_msg), image_to_array(truth)
+        seen = np.isfinite(depth) & np.isfinite(true)
+        assert seen.sum() > 1000
+        assert np.median(np.abs(depth[seen] - true[seen]) / true[seen]) < 0.05
+        pong = _query(s, f"etam/{rig}/mapper/map/cmd", Command(op="ping"))
+        assert pong.ok and pong.result["method"] == "stereo" and pong.result["camera"] == "cam0+cam1"
 
 
 def test_mapper_service_builds_the_mosaic_of_a_spinning_camera(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001

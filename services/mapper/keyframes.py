@@ -64,6 +64,11 @@ class KeyframeMapper:
         self._last: np.ndarray | None = None  # where the camera was last seen, and how far it went in the segment
         self._travel = 0.0
 
+    @property
+    def held(self) -> int:
+        """How many items the current segment holds."""
+        return self._n
+
     def add(self, events: np.ndarray, trajectory: Trajectory) -> list[Keyframe]:
         """Events sorted by time; the keyframes their segments completed."""
         out: list[Keyframe] = []

@@ -19,7 +19,7 @@ from services.mapper.evaluation import coverage, depth_errors, depth_scores, ima
 from services.mapper.keyframes import KeyframeMapper, KeyframeParams
 from services.mapper.mosaic import Mosaic, MosaicParams, from_png16
 from services.mapper.ply import read_map, write_map
-from services.mapper.stereo import StereoMapper, StereoParams
+from services.mapper.stereo import StereoMapper, StereoParams, relative_pose
 from services.mapper.trajectory import Trajectory, read_tum
 
 EDGE_WINDOW_US = 10_000  # truth edge pixels: those that fired at least twice this near a scored frame's time
@@ -48,9 +48,10 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
         n_events = 0
         if method == "stereo":
             try:
-                mapper = StereoMapper(K, rig[1].K_or_default(), _left_right(rig[0], rig[1]), rec.width,
-                                      rec.height, params, stereo)
-            except ValueError as exc:  # a rig that cannot be rectified
+                in_rig = [r.calibration.T_body_cam if r.calibration is not None else None for r in rig[:2]]
+                mapper = StereoMapper(K, rig[1].K_or_default(), relative_pose(*in_rig), rec.width, rec.height,
+                                      params, stereo)
+            except ValueError as exc:  # no pose in the rig, or a rig that cannot be rectified
                 raise FormatError(src, str(exc)) from None
             for left, right in _paired_chunks(rig[0], rig[1], trajectory, progress):
                 n_events += len(left) + len(right)
@@ -70,14 +71,6 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     n_points = write_map(out, cloud, f"etam map of {src.name} ({method}): voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "method": method, "events": n_events,
             "keyframes": len(cloud.views), "points": n_points, "poses": str(poses) if poses else "truth"}
-
-
-def _left_right(left: Recording, right: Recording) -> np.ndarray:
-    """The right camera's pose in the left camera's frame, from their poses in the rig (T_body_cam)."""
-    poses = [r.calibration.T_body_cam if r.calibration is not None else None for r in (left, right)]
-    if poses[1] is None:
-        raise FormatError(right.path, "the second camera has no pose in the rig (calibration/T_body_cam)")
-    return np.linalg.inv(poses[0] if poses[0] is not None else np.eye(4)) @ poses[1]
 
 
 def _paired_chunks(left: Recording, right: Recording, trajectory: Trajectory,

@@ -9,6 +9,10 @@ map (m, NaN where none; the tracker's `xyz` reads it) on ``mapper/map/depth``; `
 answers with the whole map; commands `reset` and `save` (`path`: a PLY file) act on it. The map
 is a capped voxel grid, and pending events and poses are bounded too, so memory stays bounded.
 
+With `--method stereo` it pairs that camera with a second one (`--right`, default cam1): both cameras'
+events, held until poses cover them, feed the stereo mapper (`etam map --method stereo`'s) instead, with
+the rig's geometry from their CameraInfo (`T_body_cam`).
+
 With `--build mosaic` the same events and poses feed the mosaic's gradient filter instead (`etam
 mosaic`'s), and its Poisson reconstruction is published at most twice a second on
 ``mapper/map/mosaic`` (a 16-bit PNG Image, 0 where never observed); `save` then writes that PNG.
@@ -25,48 +29,64 @@ from pathlib import Path
 import numpy as np
 
 from services import keys
-from services.messages import (
-    EVENT_DTYPE, Command, EventPacket, Message, PointCloud, Pose, Reply, image_from_array,
-)
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.mosaic import Mosaic, MosaicParams
 from services.mapper.offline import write_mosaic
 from services.mapper.ply import write_map
+from services.mapper.stereo import StereoMapper, StereoParams, relative_pose
+from services.messages import (
+    EVENT_DTYPE, CameraInfo, Command, EventPacket, Message, PointCloud, Pose, Reply, image_from_array,
+)
 from services.mapper.trajectory import Trajectory
+from services.mapper.warmup import warm_up
 from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
 
 POSES_KEPT = 3_000  # the latest poses held (a minute at 50 Hz, many segments): older events are dropped
 WORK_PERIOD_S = 0.05  # new events and poses are taken in batches at most this often
-PENDING_EVENTS = 2_000_000  # events held while they wait for poses (32 MB); the oldest go beyond
+# events held per camera while they wait for poses or for a keyframe's sweep (seconds on a busy machine), 128 MB;
+# the oldest go beyond
+PENDING_EVENTS = 8_000_000
 MOSAIC_PERIOD_S = 0.5  # the mosaic is rebuilt (a Poisson solve, ~0.2 s at 2048 x 1024) and published this often
+STEREO_FRAMES_PER_BATCH = 2  # a batch (WORK_PERIOD_S, longer when behind) matches at most this many stereo frames
 MODES = ("depth", "mosaic")
+METHODS = ("sweep", "stereo")
 
 
 class MapperService(Service):
     kind = "mapper"
 
     def __init__(self, options: ServiceOptions, params: KeyframeParams | None = None, cam: str = "cam0",
-                 poses: str = "ego", mode: str = "depth", mosaic_params: MosaicParams | None = None) -> None:
+                 poses: str = "ego", mode: str = "depth", mosaic_params: MosaicParams | None = None,
+                 method: str = "sweep", right: str = "cam1", stereo: StereoParams | None = None,
+                 max_rate: float = 4e5) -> None:
         super().__init__(options)
-        if mode not in MODES:
-            raise ValueError(f"mapper mode {mode!r} is not one of {', '.join(MODES)}")
+        if mode not in MODES or method not in METHODS:
+            raise ValueError(f"mapper mode {mode!r} / method {method!r}: modes are {', '.join(MODES)}, "
+                             f"methods {', '.join(METHODS)}")
+        if max_rate < 0:
+            raise ValueError(f"--max-rate must be >= 0 (0: every event), got {max_rate / 1e6}")
+        if method == "stereo" and (mode != "depth" or right == cam):
+            raise ValueError(f"stereo maps depth from two cameras: --right ({right}) must differ from --cam ({cam})")
         self.map_params, self.mosaic_params = params or KeyframeParams(), mosaic_params or MosaicParams()
-        self.cam, self.poses, self.mode = cam, poses, mode
+        self.stereo_params = stereo or StereoParams()
+        self.cam, self.poses, self.mode, self.method = cam, poses, mode, method
+        self.max_rate = max_rate  # events per second of stream the sweep takes at most (0: all)
+        self.cams = (cam, right) if method == "stereo" else (cam,)
         self.mosaic: Mosaic | None = None
         self._mosaic_published = 0.0
-        self.K: dict[str, np.ndarray] = {}
+        self.cameras: dict[str, CameraInfo] = {}
         self.cloud = VoxelMap()
-        self.mapper: KeyframeMapper | None = None
+        self.mapper: KeyframeMapper | StereoMapper | None = None
         self._rows: collections.deque[np.ndarray] = collections.deque(maxlen=POSES_KEPT)
-        self._pending: collections.deque[np.ndarray] = collections.deque()
-        self._n_pending = 0
-        self._size: tuple[int, int] | None = None
+        self._pending = {c: collections.deque() for c in self.cams}
+        self._n_pending = dict.fromkeys(self.cams, 0)
+        self._received_us = dict.fromkeys(self.cams, -1)  # each camera's latest event time so far
         self._wake = asyncio.Event()
-        self.status = {"mode": mode, "poses": poses, "camera": cam, "keyframes": 0, "map_points": 0,
-                       "dropped_events": 0}
+        self.status = {"mode": mode, "method": method, "poses": poses, "camera": "+".join(self.cams), "keyframes": 0,
+                       "map_points": 0, "dropped_events": 0}
 
     def pose_key(self) -> str:
         if self.poses == "truth":
@@ -74,21 +94,26 @@ class MapperService(Service):
         return keys.key(self.rig, "tracker", "ego", "pose")
 
     async def main(self) -> None:
+        if self.mode == "depth":
+            await asyncio.to_thread(warm_up, self.method)  # before any event can queue up
         self.serve("all", self._whole_map)
-        await asyncio.gather(self._events(), self._follow_poses(), self._work(),
-                             self.follow_intrinsics(self.cam, self.K, lambda: self.cam not in self.K))
+        await asyncio.gather(*(self._events(cam) for cam in self.cams), self._follow_poses(), self._work(),
+                             self.follow_cameras("*", self.cameras, lambda: any(c not in self.cameras for c in self.cams)))
 
-    async def _events(self) -> None:
-        async for _, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=4096):
+    async def _events(self, cam: str) -> None:
+        pending = self._pending[cam]
+        async for _, msg in self.subscribe(keys.events(self.rig, cam), EventPacket, policy="fifo", maxsize=4096):
             assert isinstance(msg, EventPacket)
             if self.paused or not len(msg.events):
                 continue
-            self._size = (msg.width, msg.height)
-            self._pending.append(msg.events)
-            self._n_pending += len(msg.events)
-            while self._n_pending > PENDING_EVENTS:  # no poses for a long while: the oldest go, counted
-                old = self._pending.popleft()
-                self._n_pending -= len(old)
+            pending.append(msg.events)
+            self._n_pending[cam] += len(msg.events)
+            self._received_us[cam] = int(msg.events["t"][-1])
+            if cam == self.cam:
+                self.status["received_until_us"] = self._received_us[cam]
+            while self._n_pending[cam] > PENDING_EVENTS:  # no poses for a long while: the oldest go, counted
+                old = pending.popleft()
+                self._n_pending[cam] -= len(old)
                 if not self.status["dropped_events"]:
                     log.warning("no poses on %s cover the events: dropping the oldest", self.pose_key())
                 self.status["dropped_events"] += len(old)
@@ -113,21 +138,29 @@ class MapperService(Service):
             await self._wake.wait()
             await asyncio.sleep(WORK_PERIOD_S)  # a batch, not one pass (and one trajectory) per packet
             self._wake.clear()
-            K = self.K.get(self.cam)
-            if K is None or self._size is None or len(self._rows) < 2:
+            infos = [self.cameras.get(c) for c in self.cams]
+            if None in infos or len(self._rows) < 2:
                 continue
-            until_us = int(round(self._rows[-1][0] * 1e6))
-            ready = self._take_until(until_us)
-            if not len(ready):
+            # up to where poses cover and every camera has delivered (a stereo pair's packets arrive apart)
+            until_us = min(int(round(self._rows[-1][0] * 1e6)), *self._received_us.values())
+            ready = [self._take_until(c, until_us) for c in self.cams]
+            self.status["pending_events"] = sum(self._n_pending.values())  # what waits for poses or for the sweep
+            if not any(len(r) for r in ready) or "error" in self.status:
                 continue
+            self.status["mapped_until_us"] = max(int(r["t"][-1]) for r in ready if len(r))
             trajectory = Trajectory(np.array(self._rows))
-            ready = ready[ready["t"] >= trajectory.start_us]
+            ready = [r[r["t"] >= trajectory.start_us] for r in ready]
             if self.mode == "mosaic":
-                await self._fold_mosaic(ready, trajectory, K, mosaic_out)
+                await self._fold_mosaic(ready[0], trajectory, infos[0], mosaic_out)
                 continue
             if self.mapper is None:
-                self.mapper = KeyframeMapper(K, *self._size, self.map_params)
-            for kf in await asyncio.to_thread(self.mapper.add, ready, trajectory):
+                try:
+                    self.mapper = self._new_mapper(infos)
+                except ValueError as exc:  # a rig that cannot be rectified: say so, keep serving
+                    log.error("cannot map with cameras %s: %s", "+".join(self.cams), exc)
+                    self.status["error"] = str(exc)
+                    continue
+            for kf in await asyncio.to_thread(self._map, ready, trajectory):
                 new = self.cloud.add_keyframe(kf)
                 out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
                 depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
@@ -135,10 +168,34 @@ class MapperService(Service):
                          len(kf.points), len(self.cloud))
                 self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
 
-    async def _fold_mosaic(self, ready: np.ndarray, trajectory: Trajectory, K: np.ndarray, out) -> None:  # noqa: ANN001
+    def _map(self, ready: list[np.ndarray], trajectory: Trajectory) -> list[Keyframe]:
+        """The keyframes a batch completes, its work bounded so that the mapper keeps up with the camera:
+        the sweep takes every k-th event (at most `max_rate` per second of stream), stereo matches at most
+        STEREO_FRAMES_PER_BATCH frames (the time surfaces take every event)."""
+        if isinstance(self.mapper, StereoMapper):
+            keyframes = self.mapper.add(*ready, trajectory, max_frames=STEREO_FRAMES_PER_BATCH)
+            self.status["stereo_frames_skipped"] = self.mapper.matcher.skipped
+            return keyframes
+        events = ready[0]
+        span_s = (int(events["t"][-1]) - int(events["t"][0])) / 1e6 if len(events) else 0.0
+        stride = max(1, int(np.ceil(len(events) / (span_s * self.max_rate)))) if self.max_rate and span_s > 0 else 1
+        self.status["sweep_stride"] = stride
+        return self.mapper.add(events[::stride], trajectory)
+
+    def _new_mapper(self, infos: list[CameraInfo]) -> KeyframeMapper | StereoMapper:
+        left = infos[0]
+        if self.method == "sweep":
+            return KeyframeMapper(left.K, left.width, left.height, self.map_params)
+        right = infos[1]
+        if (right.width, right.height) != (left.width, left.height):
+            raise ValueError(f"the cameras differ in size ({left.width}x{left.height}, {right.width}x{right.height})")
+        return StereoMapper(left.K, right.K, relative_pose(left.T_body_cam, right.T_body_cam), left.width,
+                            left.height, self.map_params, self.stereo_params)
+
+    async def _fold_mosaic(self, ready: np.ndarray, trajectory: Trajectory, info: CameraInfo, out) -> None:  # noqa: ANN001
         """Folds events into the mosaic (in a worker thread) and publishes it when it is due."""
         if self.mosaic is None:
-            self.mosaic = Mosaic(K, *self._size, self.mosaic_params)
+            self.mosaic = Mosaic(info.K, info.width, info.height, self.mosaic_params)
         mosaic = self.mosaic
         await asyncio.to_thread(mosaic.add, ready, trajectory)
         if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
@@ -149,18 +206,17 @@ class MapperService(Service):
         out.publish(image_from_array(t_us, image, "png"))
         self.status.update(mosaic_events=mosaic.events, mosaic_observed=round(float((image > 0).mean()), 4))
 
-    def _take_until(self, until_us: int) -> np.ndarray:
-        """The pending events up to `until_us` (later ones stay pending), in time order."""
-        taken = []
-        while self._pending and self._pending[0]["t"][-1] <= until_us:
-            taken.append(self._pending.popleft())
-        if self._pending and self._pending[0]["t"][0] <= until_us:
-            head = self._pending[0]
+    def _take_until(self, cam: str, until_us: int) -> np.ndarray:
+        """Camera `cam`'s pending events up to `until_us` (later ones stay pending), in time order."""
+        taken, pending = [], self._pending[cam]
+        while pending and pending[0]["t"][-1] <= until_us:
+            taken.append(pending.popleft())
+        if pending and pending[0]["t"][0] <= until_us:
+            head = pending[0]
             cut = int(np.searchsorted(head["t"], until_us, side="right"))
             taken.append(head[:cut])
-            self._pending[0] = head[cut:]
-        n = sum(len(t) for t in taken)
-        self._n_pending -= n
+            pending[0] = head[cut:]
+        self._n_pending[cam] -= sum(len(t) for t in taken)
         return np.concatenate(taken) if taken else np.zeros(0, EVENT_DTYPE)
 
     def _whole_map(self, _: Message | None) -> Message:
@@ -173,8 +229,10 @@ class MapperService(Service):
         self.mapper = None
         self.mosaic = None
         self._rows.clear()
-        self._pending.clear()
-        self._n_pending = 0
+        for cam in self.cams:
+            self._pending[cam].clear()
+            self._n_pending[cam] = 0
+            self._received_us[cam] = -1
 
     def on_command(self, cmd: Command) -> Reply | None:
         if cmd.op == "reset":

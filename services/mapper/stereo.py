@@ -65,6 +65,15 @@ def _latest(last, x, y, t):  # noqa: ANN001, ANN202 - numba kernel
             last[y[i], x[i]] = t[i]
 
 
+def relative_pose(T_body_left: np.ndarray | None, T_body_right: np.ndarray | None) -> np.ndarray:
+    """The right camera's pose in the left camera's frame (4x4), from their poses in the rig (T_body_cam;
+    None for the left one: it is the body)."""
+    if T_body_right is None:
+        raise ValueError("the second camera has no pose in the rig (T_body_cam)")
+    left = np.eye(4) if T_body_left is None else np.asarray(T_body_left, np.float64)
+    return np.linalg.inv(left) @ np.asarray(T_body_right, np.float64)
+
+
 class Rectifier:
     """Maps two cameras' images onto a common image plane where epipolar lines are rows, and back.
 
@@ -178,10 +187,14 @@ class StereoMatcher:
         self.surfaces = (TimeSurface(width, height), TimeSurface(width, height))
         self.fb = float(self.rectifier.K[0, 0] * self.rectifier.baseline_m)  # disparity (px) times depth (m)
         self._next_us: int | None = None
+        self.skipped = 0  # frames not matched (see `add`)
 
-    def add(self, left: np.ndarray, right: np.ndarray, trajectory: Trajectory) -> np.ndarray:
+    def add(self, left: np.ndarray, right: np.ndarray, trajectory: Trajectory,
+            max_frames: int | None = None) -> np.ndarray:
         """Events of both cameras (sorted by time) up to the same time; the estimates of the frames they
-        complete, in world coordinates by the left camera's `trajectory`."""
+        complete, in world coordinates by the left camera's `trajectory`. With `max_frames`, only the
+        latest that many of those frames are matched (a live mapper that fell behind catches up; the
+        time surfaces still take every event); the others are counted in `skipped`."""
         if not len(left):
             self.surfaces[1].add(right)
             return np.zeros(0, ESTIMATE_DTYPE)
@@ -189,15 +202,17 @@ class StereoMatcher:
         if self._next_us is None:
             self._next_us = int(left["t"][0]) + step
         end = max(int(left["t"][-1]), int(right["t"][-1]) if len(right) else 0)
+        due = range(self._next_us, end + 1, step)
+        skip = max(len(due) - max_frames, 0) if max_frames is not None else 0
+        self.skipped += skip
         out, done = [], [0, 0]
-        while self._next_us <= end:
-            t = self._next_us
+        for t in due[skip:]:
             for k, (surface, events) in enumerate(zip(self.surfaces, (left, right), strict=True)):
                 upto = int(np.searchsorted(events["t"], t, side="right"))
                 surface.add(events[done[k]:upto])
                 done[k] = upto
             out.append(self.frame(t, trajectory))
-            self._next_us += step
+        self._next_us += len(due) * step
         for surface, events, k in zip(self.surfaces, (left, right), done, strict=True):
             surface.add(events[k:])
         return np.concatenate(out) if out else np.zeros(0, ESTIMATE_DTYPE)
@@ -235,8 +250,9 @@ class StereoMapper:
         self.keyframes = KeyframeMapper(K, width, height, params, build=lambda estimates, trajectory: fuse_keyframe(
             estimates, trajectory, K, width, height, stereo, params.sweep))
 
-    def add(self, left: np.ndarray, right: np.ndarray, trajectory: Trajectory) -> list[Keyframe]:
-        return self.keyframes.add(self.matcher.add(left, right, trajectory), trajectory)
+    def add(self, left: np.ndarray, right: np.ndarray, trajectory: Trajectory,
+            max_frames: int | None = None) -> list[Keyframe]:
+        return self.keyframes.add(self.matcher.add(left, right, trajectory, max_frames), trajectory)
 
     def flush(self, trajectory: Trajectory) -> Keyframe | None:
         return self.keyframes.flush(trajectory)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services import keys
-from services.messages import Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
+from services.messages import CameraInfo, Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
 from services.runtime import Service, ServiceOptions
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
@@ -69,7 +69,7 @@ class TrackerService(Service):
         self.cam = cam
         self.sizes = sizes or ObjectSizes()
         self.streams: dict[str, _Stream] = {}
-        self.K: dict[str, np.ndarray] = {}  # camera name -> intrinsics
+        self.cameras: dict[str, CameraInfo] = {}  # camera name -> its size and intrinsics
         self.depth: dict[str, np.ndarray] = {}  # camera name -> latest depth image
         self.params = {"update_us": self.tracker_params.update_us,
                        "density": self.tracker_params.clusters.density,
@@ -77,12 +77,12 @@ class TrackerService(Service):
                        "frames": self.tracker_params.frames, "detector": self.tracker_params.detector}
 
     async def main(self) -> None:
-        await asyncio.gather(self._track(), self.follow_intrinsics(self.cam, self.K, self._missing_intrinsics),
+        await asyncio.gather(self._track(), self.follow_cameras(self.cam, self.cameras, self._missing_intrinsics),
                              self._depths())
 
     def _missing_intrinsics(self) -> bool:
         """Whether a camera sending events (or none yet) has no known intrinsics."""
-        return not self.streams or any(_camera(key) not in self.K for key in self.streams)
+        return not self.streams or any(_camera(key) not in self.cameras for key in self.streams)
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
@@ -121,7 +121,7 @@ class TrackerService(Service):
         """xyz per track (from depth where the box has some, else from its known width) and the
         widths used; None, None when neither a depth image nor any width is known, or the
         intrinsics are not."""
-        K = self.K.get(cam)
+        K = self.cameras[cam].K if cam in self.cameras else None
         depth = self.depth.get(cam, self.depth.get("*"))
         if K is None or (depth is None and self.sizes.default_m is None and not self.sizes.per_id):
             return None, None
