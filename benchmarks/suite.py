@@ -122,12 +122,20 @@ def format_results(results: dict) -> str:
                      f"p99 {row['latency_ms_p99']:.2f} ms max {row['latency_ms_max']:.1f} ms over {row['updates']} "
                      f"updates at {row['events_per_s'] / 1e6:.2f} Mev/s")
     for row in results.get("mapping", []):
-        if "events_per_s" in row:
+        if row["stage"] == "mapping live":
+            lines.append(f"{row['stage']} ({row['scene']}, {row['method']}, {row['events_per_s'] / 1e6:.2f} Mev/s): "
+                         + (row["error"] if "error" in row else
+                            f"pending at most {row['pending_events_max']} events, lag p50 {row['lag_ms_p50']:.0f} ms "
+                            f"max {row['lag_ms_max']:.0f} ms, dropped {row['dropped_events']}, {row['keyframes']} "
+                            f"keyframes, done {row['drain_s']} s after the file"))
+        elif "events_per_s" in row:
             lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.2f} Mev/s ({row['planes']} planes, "
                          f"{row['size']}, {row['threads']} threads)")
         else:
-            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: median error {row['median_error_pct_of_range']:.2f} "
-                         f"% of range, within 5 % {row['within_5pct']:.3f}, completeness {row['completeness']:.2f}")
+            lines.append(f"{row['stage']} {row['scene']:>6} seed {row['seed']!s:>9}: median error "
+                         f"{row['median_error_pct_of_range']:.2f} % of range, mean {row['mean_relative_error_pct']:.2f} % "
+                         f"of depth, {row['mean_abs_error_m'] * 100:.1f} cm, within 5 % {row['within_5pct']:.3f}, "
+                         f"completeness {row['completeness']:.2f}, {row['points']:.0f} points")
     for row in results.get("mosaic", []):
         if row["stage"] == "mosaic quality":
             lines.append(f"{row['stage']} seed {row['seed']!s:>9}: PSNR {row['psnr_db']:.2f} dB, SSIM {row['ssim']:.3f}, "
