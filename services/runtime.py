@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 Policy = Literal["latest", "fifo", "lossless"]
 M = TypeVar("M", bound=Message)
 SHUTDOWN_S = 2.0
+YIELD_EVERY_S = 0.005  # an input always ready gives the loop back this often
 
 
 class Output:
@@ -110,6 +111,7 @@ class Input:
         self._closed = False
         self.subscriber: zenoh.Subscriber | None = None
         self._malformed_logged = 0.0
+        self._yielded = time.monotonic()  # when this input last gave the loop back
 
     # zenoh thread -----------------------------------------------------------------------------
     def on_sample(self, sample: zenoh.Sample) -> None:
@@ -162,6 +164,12 @@ class Input:
 
     async def _next_raw(self) -> tuple[str, bytes]:
         while True:
+            if time.monotonic() - self._yielded >= YIELD_EVERY_S:
+                # a consumer behind its input finds a sample ready every time and would never give the loop
+                # back: its service's Stats, queries and other inputs would starve (the launcher then takes
+                # it for hung and kills it)
+                await asyncio.sleep(0)
+                self._yielded = time.monotonic()
             with self._lock:
                 if self._latest:
                     key = next(iter(self._latest))
@@ -176,6 +184,7 @@ class Input:
                 self._waiter = self._loop.create_future()
                 waiter = self._waiter
             await waiter
+            self._yielded = time.monotonic()
 
     @property
     def counter(self) -> KeyCounter:

@@ -123,3 +123,30 @@ def test_peek_reads_message_headers_without_the_arrays() -> None:
             pass
 
     garbage_is_refused_with_known_errors()
+
+
+def test_a_consumer_behind_its_input_still_lets_the_loop_run_other_tasks() -> None:
+    """A backlog means every sample is ready at once; the input must still give the loop back, or the
+    service's heartbeat (Stats) stops and the launcher takes it for hung."""
+    async def main() -> None:
+        inp = _input("fifo", maxsize=1000)
+        for seq in range(1, 301):
+            inp.push("k/a", _packet(seq))
+        beats = 0
+
+        async def heartbeat() -> None:
+            nonlocal beats
+            while True:
+                beats += 1
+                await asyncio.sleep(0.01)
+
+        task = asyncio.ensure_future(heartbeat())
+        await asyncio.sleep(0)
+        start = beats
+        for _ in range(300):
+            await inp.__anext__()
+            time.sleep(0.001)  # the consumer's work, holding the loop as a tracker update does
+        task.cancel()
+        assert beats - start >= 5  # 0.3 s of work: many 10 ms beats, not none
+
+    asyncio.run(main())
