@@ -7,9 +7,9 @@ their mean. Speed: the DSI voting (`sweep.vote`) of one keyframe's events, 100 p
 the numba threads of this machine (one per core), and the whole keyframe (voting, peaks, filters,
 points), as events per second. No peer library on PyPI does a space sweep, so no ratio is given.
 Live: a recording of each scene played in real time by `etam up` (camera and tracker) with the
-mapper beside it (`--poses truth`, at the priority `etam up` gives it), its `ping` status read twice a second: the events it holds
-(waiting for poses or for the sweep), how far its mapping trails the newest event it received, and,
-once the file ends, how long it takes to take the last events.
+mapper beside it (`--poses truth`, at the priority `etam up` gives it), its `ping` status read twice a
+second: the events it holds (waiting for poses or for the sweep), how far its mapping trails the newest
+event it received, and, once the file ends, how long it takes to take the last events.
 """
 
 from __future__ import annotations
@@ -31,11 +31,11 @@ from services.camera.formats.hdf5 import H5Recording
 from services.camera.offline import simulate
 from services.config import ZenohSettings
 from services.launcher import MAPPER_NICE
-from services.messages import Command, Reply, decode
 from services.mapper import sweep
 from services.mapper.keyframes import POSE_EVERY, KeyframeParams, sweep_keyframe
 from services.mapper.offline import build_map, eval_map
 from services.mapper.trajectory import Trajectory
+from services.messages import Command, Reply, decode
 
 HELD_OUT_SEEDS = (11, 12, 13)  # never looked at while choosing defaults: keep them so
 FIGURES = ("points", "median_abs_error_m", "mean_abs_error_m", "median_error_pct_of_range", "mean_relative_error_pct",
@@ -69,7 +69,8 @@ def live(folder: Path, scene: str, method: str, duration_s: float) -> dict:
     endpoint, rig_name = f"tcp/127.0.0.1:{free_port()}", "bench-map"
     common = ["--rig", rig_name, "--log-level", "WARNING"]
     rig = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--source", str(h5), "--rate", "1", "--no-web",
-                            "--listen", endpoint, "--duration", str(duration_s + 40), *common], stdout=subprocess.DEVNULL)
+                            "--listen", endpoint, "--duration", str(duration_s + 40), *common],
+                           stdout=subprocess.DEVNULL)
     mapper = None
     row = {"stage": "mapping live", "scene": scene, "method": method, "events_per_s": n_events / duration_s}
     try:

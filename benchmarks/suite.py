@@ -133,7 +133,8 @@ def format_results(results: dict) -> str:
                          f"{row['size']}, {row['threads']} threads)")
         else:
             lines.append(f"{row['stage']} {row['scene']:>6} seed {row['seed']!s:>9}: median error "
-                         f"{row['median_error_pct_of_range']:.2f} % of range, mean {row['mean_relative_error_pct']:.2f} % "
+                         f"{row['median_error_pct_of_range']:.2f} % of range, "
+                         f"mean {row['mean_relative_error_pct']:.2f} % "
                          f"of depth, {row['mean_abs_error_m'] * 100:.1f} cm, within 5 % {row['within_5pct']:.3f}, "
                          f"completeness {row['completeness']:.2f}, {row['points']:.0f} points")
     for row in results.get("mosaic", []):

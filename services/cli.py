@@ -133,8 +133,8 @@ def _cmd_web(args: argparse.Namespace) -> int:
     return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
 
 
-# sources whose truth poses the mapper maps with in `etam up`, and its flags, until the tracker's ego-motion gives poses;
-# the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
+# sources whose truth poses the mapper maps with in `etam up`, and its flags, until the tracker's ego-motion gives
+# poses; the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
 MAPPED_SIMS = {"sim:6dof": (), "sim:stereo": ("--method", "stereo"),
                "sim:rotation": ("--build", "mosaic", "--size", "1024x512")}
 

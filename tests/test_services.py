@@ -237,7 +237,7 @@ def test_mapper_service_maps_a_stereo_rig(router: str, rig: str) -> None:
         depth_msg = wait_for(lambda: depths.of(Image), 150, "a stereo keyframe's depth map")[0]
         assert len(wait_for(lambda: points.of(PointCloud), 10, "its points")[0].points) > 300
         truth = min(truths.of(Image), key=lambda m: abs(m.stamp - depth_msg.stamp))
-        assert abs(truth.stamp - depth_msg.stamp) <= 50_000  # truth depth comes at 10 Hz; the camera moves ~1 cm in that
+        assert abs(truth.stamp - depth_msg.stamp) <= 50_000  # truth depth comes at 10 Hz; the camera moves ~1 cm
         depth, true = image_to_array(depth_msg), image_to_array(truth)
         seen = np.isfinite(depth) & np.isfinite(true)
         assert seen.sum() > 1000

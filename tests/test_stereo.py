@@ -84,7 +84,8 @@ def test_rectifier_puts_a_point_on_one_row_at_the_disparity_of_its_depth() -> No
         (xl, yl), (xr, yr) = _centroid(left), _centroid(right)
         assert abs(yl - yr) < 0.2
         z = rect.K[0, 0] * rect.baseline_m / (xl - xr)
-        back = rect.R_left @ np.array([(xl - rect.K[0, 2]) / rect.K[0, 0] * z, (yl - rect.K[1, 2]) / rect.K[1, 1] * z, z])
+        fx, fy, cx, cy = rect.K[0, 0], rect.K[1, 1], rect.K[0, 2], rect.K[1, 2]
+        back = rect.R_left @ np.array([(xl - cx) / fx * z, (yl - cy) / fy * z, z])
         assert np.linalg.norm(back - P) < 0.02 * P[2]
     straight = np.eye(4)
     straight[0, 3] = 0.1

@@ -98,7 +98,7 @@ class MapperService(Service):
             await asyncio.to_thread(warm_up, self.method)  # before any event can queue up
         self.serve("all", self._whole_map)
         await asyncio.gather(*(self._events(cam) for cam in self.cams), self._follow_poses(), self._work(),
-                             self.follow_cameras("*", self.cameras, lambda: any(c not in self.cameras for c in self.cams)))
+                             self.follow_cameras("*", self.cameras, lambda: not set(self.cams) <= set(self.cameras)))
 
     async def _events(self, cam: str) -> None:
         pending = self._pending[cam]

@@ -179,8 +179,8 @@ class StereoMatcher:
     `every_ms`, searching depths in `depth_range` (m). Both cameras' events must be given up to the same
     time."""
 
-    def __init__(self, K_left: np.ndarray, K_right: np.ndarray, T_left_right: np.ndarray, width: int,
-                 height: int, params: StereoParams | None = None, depth_range: tuple[float, float] = (0.5, 8.0)) -> None:
+    def __init__(self, K_left: np.ndarray, K_right: np.ndarray, T_left_right: np.ndarray, width: int, height: int,
+                 params: StereoParams | None = None, depth_range: tuple[float, float] = (0.5, 8.0)) -> None:
         self.params = params or StereoParams()
         self.depth_range = depth_range
         self.rectifier = Rectifier(K_left, K_right, T_left_right, width, height)
