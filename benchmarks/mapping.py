@@ -34,6 +34,7 @@ from services.launcher import MAPPER_NICE
 from services.mapper import sweep
 from services.mapper.keyframes import POSE_EVERY, KeyframeParams, sweep_keyframe
 from services.mapper.offline import build_map, eval_map
+from services.mapper.stereo import StereoParams
 from services.mapper.trajectory import Trajectory
 from services.messages import Command, Reply, decode
 
@@ -94,12 +95,15 @@ def live(folder: Path, scene: str, method: str, duration_s: float) -> dict:
     last = streamed[-1]
     return {**row, "pending_events_max": max(s.get("pending_events", 0) for s in streamed),
             "lag_ms_p50": float(np.median(lag)), "lag_ms_max": float(np.max(lag)), "keyframes": last["keyframes"],
-            "dropped_events": last["dropped_events"], "drain_s": last.get("drain_s")}
+            "dropped_events": last["dropped_events"], "drain_s": last.get("drain_s"),
+            # how much it left out to keep up: the sweep's event stride, the stereo frames not matched
+            "sweep_stride": last.get("sweep_stride"), "stereo_frames_skipped": last.get("stereo_frames_skipped"),
+            "stereo_frames": int(duration_s * 1000 / StereoParams().every_ms) if method == "stereo" else None}
 
 
 def _poll_mapper(session, cmd_key: str, duration_s: float) -> list[dict]:  # noqa: ANN001 - a zenoh.Session
-    """The mapper's `ping` status twice a second while the file plays, then until it has taken every event
-    it received (`drain_s`: how long that took after the file ended) or 60 s."""
+    """The mapper's `ping` status twice a second while the file plays, then until it has mapped every event
+    it received that poses cover (`drain_s`: how long that took after the file ended) or 60 s."""
     samples: list[dict] = []
     start, ended, last_rx = time.monotonic(), None, None
     while time.monotonic() - start < duration_s + 70:
@@ -113,7 +117,8 @@ def _poll_mapper(session, cmd_key: str, duration_s: float) -> list[dict]:  # noq
         if rx is not None and rx == last_rx and ended is None:
             ended = time.monotonic() - 0.5  # nothing new since the last sample: the file has ended
         last_rx = rx
-        if ended is not None and status.get("pending_events", 1) == 0 and status.get("mapped_until_us") == rx:
+        # done: mapped every event that poses cover (the few after the file's last pose wait for ever)
+        if ended is not None and status.get("mapped_until_us", -1) >= min(rx, status.get("posed_until_us", rx)):
             samples[-1] = {**status, "drain_s": round(time.monotonic() - ended, 2)}
             break
     return samples

@@ -127,7 +127,9 @@ def format_results(results: dict) -> str:
                          + (row["error"] if "error" in row else
                             f"pending at most {row['pending_events_max']} events, lag p50 {row['lag_ms_p50']:.0f} ms "
                             f"max {row['lag_ms_max']:.0f} ms, dropped {row['dropped_events']}, {row['keyframes']} "
-                            f"keyframes, done {row['drain_s']} s after the file"))
+                            f"keyframes, done {row['drain_s']} s after the file"
+                            + (f", stereo frames skipped {row['stereo_frames_skipped']} of {row['stereo_frames']}"
+                               if row.get("stereo_frames") else f", sweep stride {row.get('sweep_stride')}")))
         elif "events_per_s" in row:
             lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.2f} Mev/s ({row['planes']} planes, "
                          f"{row['size']}, {row['threads']} threads)")

@@ -142,16 +142,18 @@ class MapperService(Service):
             if None in infos or len(self._rows) < 2:
                 continue
             # up to where poses cover and every camera has delivered (a stereo pair's packets arrive apart)
-            until_us = min(int(round(self._rows[-1][0] * 1e6)), *self._received_us.values())
+            posed_us = int(round(self._rows[-1][0] * 1e6))
+            until_us = min(posed_us, *self._received_us.values())
             ready = [self._take_until(c, until_us) for c in self.cams]
-            self.status["pending_events"] = sum(self._n_pending.values())  # what waits for poses or for the sweep
+            self.status.update(pending_events=sum(self._n_pending.values()), posed_until_us=posed_us)
             if not any(len(r) for r in ready) or "error" in self.status:
                 continue
-            self.status["mapped_until_us"] = max(int(r["t"][-1]) for r in ready if len(r))
+            taken_us = max(int(r["t"][-1]) for r in ready if len(r))
             trajectory = Trajectory(np.array(self._rows))
             ready = [r[r["t"] >= trajectory.start_us] for r in ready]
             if self.mode == "mosaic":
                 await self._fold_mosaic(ready[0], trajectory, infos[0], mosaic_out)
+                self.status["mapped_until_us"] = taken_us
                 continue
             if self.mapper is None:
                 try:
@@ -167,6 +169,7 @@ class MapperService(Service):
                 log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
                          len(kf.points), len(self.cloud))
                 self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
+            self.status["mapped_until_us"] = taken_us  # every event up to here is in the map (or its segment)
 
     def _map(self, ready: list[np.ndarray], trajectory: Trajectory) -> list[Keyframe]:
         """The keyframes a batch completes, its work bounded so that the mapper keeps up with the camera:
