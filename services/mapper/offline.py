@@ -3,6 +3,7 @@ rotating camera's recording to a panorama PNG), `etam eval map` and `etam eval m
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,9 +25,7 @@ from services.mapper.trajectory import Trajectory, read_tum
 
 EDGE_WINDOW_US = 10_000  # truth edge pixels: those that fired at least twice this near a scored frame's time
 EDGE_EVENTS = 2
-
-
-METHODS = ("sweep", "stereo")
+METHODS = ("sweep", "stereo")  # how depth is mapped: the space sweep of one camera, or stereo of two
 
 
 def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeParams | None = None,
@@ -37,8 +36,8 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     two cameras) stereo matching of the first two, fuses them into a voxel map and writes it as PLY with
     the keyframes' times and poses."""
     cloud = VoxelMap(voxel_m)
-    with open_recording(src) as rec:
-        rig = rec.rig()
+    with open_recording(src) as rec, contextlib.ExitStack() as others:
+        rig = [rec, *(others.enter_context(r) for r in rec.rig()[1:])]
         method = method or ("stereo" if len(rig) > 1 else "sweep")
         if method not in METHODS:
             raise ValueError(f"mapping method {method!r} is not one of {', '.join(METHODS)}")
@@ -66,8 +65,6 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
         last = mapper.flush(trajectory)
         if last is not None:
             cloud.add_keyframe(last)
-        for other in rig[1:]:
-            other.close()
     n_points = write_map(out, cloud, f"etam map of {src.name} ({method}): voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "method": method, "events": n_events,
             "keyframes": len(cloud.views), "points": n_points, "poses": str(poses) if poses else "truth"}

@@ -32,14 +32,14 @@ from services import keys
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.mosaic import Mosaic, MosaicParams
-from services.mapper.offline import write_mosaic
+from services.mapper.offline import METHODS, write_mosaic
 from services.mapper.ply import write_map
 from services.mapper.stereo import StereoMapper, StereoParams, relative_pose
+from services.mapper.trajectory import Trajectory
+from services.mapper.warmup import warm_up
 from services.messages import (
     EVENT_DTYPE, CameraInfo, Command, EventPacket, Message, PointCloud, Pose, Reply, image_from_array,
 )
-from services.mapper.trajectory import Trajectory
-from services.mapper.warmup import warm_up
 from services.runtime import Service, ServiceOptions
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,6 @@ PENDING_EVENTS = 8_000_000
 MOSAIC_PERIOD_S = 0.5  # the mosaic is rebuilt (a Poisson solve, ~0.2 s at 2048 x 1024) and published this often
 STEREO_FRAMES_PER_BATCH = 2  # a batch (WORK_PERIOD_S, longer when behind) matches at most this many stereo frames
 MODES = ("depth", "mosaic")
-METHODS = ("sweep", "stereo")
 
 
 class MapperService(Service):

@@ -27,7 +27,8 @@ from services.mapper import sweep
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams, lift
 from services.mapper.trajectory import Trajectory
 
-ESTIMATE_DTYPE = np.dtype([("t", "<i8"), ("xyz", "<f4", 3), ("sigma", "<f4")])  # world point, sigma of 1/depth
+# world point, its distance from the camera that saw it (m), the sigma of its inverse depth there
+ESTIMATE_DTYPE = np.dtype([("t", "<i8"), ("xyz", "<f4", 3), ("range", "<f4"), ("sigma", "<f4")])
 
 
 @dataclass
@@ -232,6 +233,7 @@ class StereoMatcher:
         R, pos = (a[0] for a in trajectory.at(t_us))
         out = np.empty(len(d), ESTIMATE_DTYPE)
         out["t"], out["xyz"] = t_us, cam @ (R @ self.rectifier.R_left).T + pos
+        out["range"] = np.linalg.norm(cam, axis=1)
         out["sigma"] = p.sigma_px / self.fb  # of the inverse depth: rho = d / fb
         return out
 
@@ -271,9 +273,8 @@ def fuse_keyframe(estimates: np.ndarray, trajectory: Trajectory, K: np.ndarray, 
     v = np.round(K[1, 1] * cam[:, 1] / np.where(front, z, 1) + K[1, 2]).astype(np.int64)
     ok = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
     # inverse depth seen from the reference: rho_ref = 1 / z; its sigma scales by (rho_ref / rho)^2 ~ (d / z)^2
-    dist = np.linalg.norm(estimates["xyz"][ok] - trajectory.at(estimates["t"][ok])[1], axis=1)
     rho = 1.0 / z[ok]
-    sigma = estimates["sigma"][ok] * (dist * rho) ** 2
+    sigma = estimates["sigma"][ok] * (estimates["range"][ok] * rho) ** 2
     inv, count = fuse(v[ok] * width + u[ok], rho, sigma, params.gate_sigma, width * height)
     keep = (count >= params.min_fused) & (inv > 0)
     depth = np.where(keep, 1.0 / np.where(keep, inv, 1), np.nan).reshape(height, width).astype(np.float32)
