@@ -64,20 +64,23 @@ def _mosaic_flags(p: argparse.ArgumentParser) -> None:
                    help="equirectangular panorama size, pixels (default 2048x1024)")
     p.add_argument("--contrast", type=float, default=0.25,
                    help="the sensor's contrast threshold C, log intensity per event (default 0.25)")
+    p.add_argument("--fit-iterations", type=int, default=20, metavar="N",
+                   help="iterations fitting the mosaic to the events' own brightness steps (default 20; 0: the "
+                        "gradient filter's Poisson reconstruction alone)")
 
 
 def _mosaic_params(args: argparse.Namespace):  # noqa: ANN202 - MosaicParams
-    """The mosaic's settings from `--size` and `--contrast`; ConfigError naming a bad one."""
+    """The mosaic's settings from `--size`, `--contrast` and `--fit-iterations`; ConfigError naming a bad one."""
     from services.mapper.mosaic import MosaicParams
 
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise config.ConfigError(f"--size takes WxH in pixels, e.g. 2048x1024, got {args.size!r}") from None
-    if width < 8 or height < 4 or args.contrast <= 0:
-        raise config.ConfigError(f"--size needs at least 8x4 (got {args.size}) and --contrast > 0 "
-                                 f"(got {args.contrast})")
-    return MosaicParams(width=width, height=height, contrast=args.contrast)
+    if width < 8 or height < 4 or args.contrast <= 0 or args.fit_iterations < 0:
+        raise config.ConfigError(f"--size needs at least 8x4 (got {args.size}), --contrast > 0 (got {args.contrast}) "
+                                 f"and --fit-iterations >= 0 (got {args.fit_iterations})")
+    return MosaicParams(width=width, height=height, contrast=args.contrast, fit_iterations=args.fit_iterations)
 
 
 def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - ServiceOptions
@@ -112,7 +115,8 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
         sizes = ObjectSizes.parse(args.object_size or [])
     except ValueError as exc:
         raise config.ConfigError(str(exc)) from None
-    return TrackerService(_service_options(args, "objects"), method_params(args.method), sizes=sizes).run()
+    return TrackerService(_service_options(args, "objects"), method_params(args.method), cam=args.cam,
+                          sizes=sizes).run()
 
 
 def _cmd_mapper(args: argparse.Namespace) -> int:
@@ -162,8 +166,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     from services.camera.filters import parse_chain
 
-    source = open_sources(args.source)[0]  # a bad source or filter fails here, before anything starts
-    parse_chain([f for f in args.filter or [] if f != "undistort"], source.width, source.height)
+    sources = open_sources(args.source)  # a bad source or filter fails here, before anything starts
+    parse_chain([f for f in args.filter or [] if f != "undistort"], sources[0].width, sources[0].height)
+    if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
+        opts.tracker_args = ("--cam", "cam0")
     return up(opts)
 
 
@@ -434,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_flags(p)
     p.add_argument("--name", help="tracker name in keys (default objects)")
     p.add_argument("--method", default=DEFAULT_METHOD, choices=tuple(METHODS), help=METHOD_HELP)
+    p.add_argument("--cam", default="*",
+                   help="the camera whose events it tracks (default *: every camera; their tracks share one key, so "
+                        "a rig of several cameras is better served by one tracker per camera, each with --name)")
     p.add_argument("--object-size", action="append", metavar="[ID=]M",
                    help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
                         "M for every target, ID=M for one track id; repeatable")

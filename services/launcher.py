@@ -216,6 +216,7 @@ class UpOptions:
     log_level: str = "INFO"
     camera_args: tuple[str, ...] = ()
     mapper_args: tuple[str, ...] = ()
+    tracker_args: tuple[str, ...] = ()
 
 
 def _local_endpoint(listen: str) -> str:
@@ -231,7 +232,7 @@ def _children(opts: UpOptions) -> list[Child]:
     out = []
     for name in opts.services:
         extra = {"camera": ["--source", opts.source, *opts.camera_args],
-                 "mapper": ["--poses", "truth", *opts.mapper_args]}.get(name, [])
+                 "mapper": ["--poses", "truth", *opts.mapper_args], "tracker": list(opts.tracker_args)}.get(name, [])
         out.append(Child(name, [sys.executable, "-m", "services.cli", name, *common, *extra],
                          nice=MAPPER_NICE if name == "mapper" else 0))
     if opts.web:

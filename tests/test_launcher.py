@@ -183,6 +183,23 @@ def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig
     assert "plays slower than real time" in err
 
 
+def test_up_on_a_rig_tracks_boxes_of_its_first_camera_only(monkeypatch) -> None:  # noqa: ANN001
+    """Tracks carry no camera: a tracker following both cameras of a stereo rig would put the right camera's
+    boxes on the left camera's key (and do twice the work). `etam up` on a rig gives the tracker --cam cam0."""
+    import services.launcher
+    from services import cli
+    from services.launcher import _children
+
+    started = []
+    monkeypatch.setattr(services.launcher, "up", lambda opts: started.append(opts) or 0)
+    for source in ("sim:stereo", "sim:objects"):
+        assert cli.main(["up", "--source", source, "--no-web"]) == 0
+    stereo, mono = ({c.name: c.argv for c in _children(opts)} for opts in started)
+    assert stereo["tracker"][-2:] == ["--cam", "cam0"]
+    assert "--cam" not in mono["tracker"]
+    assert cli.build_parser().parse_args(["tracker", "--cam", "cam1"]).cam == "cam1"
+
+
 def test_the_dashboard_runs_at_a_lower_priority_than_the_services() -> None:
     """On a drone's few cores the viewer must not delay tracking: `etam up` starts it niced."""
     from services.launcher import VIEWER_NICE, Child, UpOptions, _children
