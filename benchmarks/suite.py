@@ -141,12 +141,14 @@ def format_results(results: dict) -> str:
                          f"completeness {row['completeness']:.2f}, {row['points']:.0f} points")
     for row in results.get("mosaic", []):
         if row["stage"] == "mosaic quality":
-            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: PSNR {row['psnr_db']:.2f} dB, SSIM {row['ssim']:.3f}, "
-                         f"observed {row['observed']:.1%} of the panorama")
+            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: PSNR {row['psnr_db']:.2f} dB, "
+                         f"SSIM {row['ssim']:.3f}, observed {row['observed']:.1%} of the panorama (Poisson alone: "
+                         f"{row['poisson_psnr_db']:.2f} dB, SSIM {row['poisson_ssim']:.3f})")
         elif "events_per_s" in row:
             lines.append(f"{row['stage']}: {row['events_per_s'] / 1e6:.2f} Mev/s on one core ({row['size']})")
         else:
-            lines.append(f"{row['stage']} {row['size']}: {row['s_per_image'] * 1e3:.0f} ms per image")
+            lines.append(f"{row['stage']} {row['size']}: {row['s_per_image'] * 1e3:.0f} ms per image "
+                         f"({row['pairs']} event pairs)")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

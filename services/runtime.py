@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import inspect
 import logging
 import os
 import signal
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, TypeVar
 
-import numpy as np
 import psutil
 import zenoh
 
@@ -231,6 +231,7 @@ class Service:
         self._counters: list[KeyCounter] = []
         self._inputs: list[Input] = []
         self._declared: list[Any] = []
+        self._answering: set[asyncio.Task] = set()  # queries whose handler's work is still going on
         self._stop: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._started = time.monotonic()
@@ -289,30 +290,49 @@ class Service:
 
         return await asyncio.get_running_loop().run_in_executor(None, ask)
 
-    def serve(self, topic_or_key: str, handler: Callable[[Message | None], Message]) -> None:
-        """Answer queries on `topic` with ``handler(decoded query payload or None)``, run on the loop."""
+    def serve(self, topic_or_key: str, handler: Callable[[Message | None], Message | Awaitable[Message]]) -> None:
+        """Answer queries on `topic` with ``handler(decoded query payload or None)``, run on the loop; a
+        handler with long work returns an awaitable instead, and the query is answered once it is done
+        (the loop goes on meanwhile)."""
         keyexpr = self._full_key(topic_or_key)
         loop = self._loop
         assert loop is not None
+
+        def failed(exc: Exception) -> Reply:  # a bad request must not kill the service
+            log.error("query on %s failed", keyexpr, exc_info=exc)
+            return Reply(ok=False, error=f"{type(exc).__name__}: {exc}")
+
+        def send(query: zenoh.Query, reply: Message) -> None:
+            try:
+                query.reply(query.key_expr, reply.encode())
+            finally:
+                query.drop()
+
+        async def later(query: zenoh.Query, pending: Awaitable[Message]) -> None:
+            try:
+                reply = await pending
+            except Exception as exc:
+                reply = failed(exc)
+            send(query, reply)
 
         def answer(query: zenoh.Query) -> None:
             try:
                 request = decode(query.payload.to_bytes()) if query.payload is not None else None
             except MessageError as exc:
-                query.reply(query.key_expr, Reply(ok=False, error=str(exc)).encode())
-                query.drop()
+                send(query, Reply(ok=False, error=str(exc)))
                 return
 
             def run() -> None:
                 try:
                     reply = handler(request)
-                except Exception as exc:  # a bad request must not kill the service
-                    log.exception("query on %s failed", keyexpr)
-                    reply = Reply(ok=False, error=f"{type(exc).__name__}: {exc}")
-                try:
-                    query.reply(query.key_expr, reply.encode())
-                finally:
-                    query.drop()
+                except Exception as exc:
+                    reply = failed(exc)
+                if inspect.isawaitable(reply):
+                    task = loop.create_task(later(query, reply))
+                    self._answering.add(task)  # held until done (the loop keeps only weak references)
+                    task.add_done_callback(self._answering.discard)
+                else:
+                    send(query, reply)
 
             loop.call_soon_threadsafe(run)
 
@@ -348,8 +368,8 @@ class Service:
         """The service's work; runs until it returns or the service is stopped."""
         raise NotImplementedError
 
-    def on_command(self, cmd: Command) -> Reply | None:
-        """Service-specific commands; return None for ops the base should handle."""
+    def on_command(self, cmd: Command) -> Reply | Awaitable[Reply] | None:
+        """Service-specific commands (an awaitable Reply for long work); None for ops the base handles."""
         return None
 
     # ---------------------------------------------------------------------------- runtime --
@@ -429,7 +449,7 @@ class Service:
             await asyncio.sleep(self.options.stats_period_s)
             self._stats_out.publish(self.stats())
 
-    def _command(self, request: Message | None) -> Reply:
+    def _command(self, request: Message | None) -> Reply | Awaitable[Reply]:
         if not isinstance(request, Command):
             return Reply(ok=False, error="cmd: expected a Command message")
         custom = self.on_command(request)

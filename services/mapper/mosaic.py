@@ -19,9 +19,10 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-import scipy.fft
 from scipy.spatial.transform import Rotation
 
+from services.mapper import mosaic_fit
+from services.mapper.poisson import poisson
 from services.mapper.trajectory import Trajectory
 
 POSE_STEP_US = 250  # the trajectory is sampled this often; rotations between samples are interpolated
@@ -37,6 +38,14 @@ class MosaicParams:
     max_travel_px: float = 30.0  # a pixel whose ray slid further since its last event tells little: skipped
     gate: float = 9.0  # innovations beyond this many variances are outliers (noise events): skipped
     min_updates: int = 3  # a panorama pixel is observed once this many events updated it
+    # the fit to the events' own steps (mosaic_fit): pairs of one pixel's consecutive events kept (a
+    # uniform sample over time: when full, every other one goes; 17 bytes each), the farthest apart the
+    # pair's two rays may land, the weight of the gradient map beside them, and the solver's iterations
+    # (0: the gradient map's Poisson reconstruction alone)
+    max_pairs: int = 2_000_000
+    max_pair_px: float = 60.0
+    prior_weight: float = 1.0
+    fit_iterations: int = 20
 
 
 class Mosaic:
@@ -58,6 +67,10 @@ class Mosaic:
         self.covariance[..., 0] = self.covariance[..., 2] = p.prior_sigma ** 2
         self.updates = np.zeros((p.height, p.width), np.int32)
         self._last_us = np.full(self.sensor[0] * self.sensor[1], -1, np.int64)
+        self._last_uv = np.full((self.sensor[0] * self.sensor[1], 2), np.nan, np.float32)  # where each last pointed
+        self._pairs = np.empty((max(p.max_pairs, 2), 4), np.float32)
+        self._polarity = np.empty(len(self._pairs), np.int8)
+        self._sampling = np.array([0, 1, 0], np.int64)  # pairs held, keep every this many, eligible seen
         self.events = 0
 
     def add(self, events: np.ndarray, trajectory: Trajectory) -> int:
@@ -75,7 +88,8 @@ class Mosaic:
         used = _update(events["x"].astype(np.int64), events["y"].astype(np.int64), t.astype(np.int64),
                        events["p"].astype(np.int64), self._rays, self.sensor[0], sample_t, quat, omega,
                        self._last_us, self.gradient, self.covariance, self.updates, p.contrast, p.noise ** 2,
-                       p.max_travel_px, p.gate)
+                       p.max_travel_px, p.gate, self._last_uv, self._pairs, self._polarity, self._sampling,
+                       p.max_pair_px)
         self.events += used
         return used
 
@@ -83,13 +97,28 @@ class Mosaic:
         """Panorama pixels the events have measured (H x W bool)."""
         return self.updates >= self.params.min_updates
 
-    def log_intensity(self) -> np.ndarray:
-        """The log intensity (up to an offset) whose gradients fit the map's best, H x W float32."""
-        return poisson(self.gradient[..., 0], self.gradient[..., 1])
+    @property
+    def pairs(self) -> int:
+        """How many event pairs the fit holds."""
+        return int(self._sampling[0])
 
-    def image(self) -> np.ndarray:
-        """The mosaic as `to_png16` grey levels (what `etam mosaic` writes and the service publishes)."""
-        return to_png16(self.log_intensity(), self.observed())
+    def log_intensity(self, fit: bool = True) -> np.ndarray:
+        """The log intensity (up to an offset), H x W float32: the Poisson reconstruction of the gradient
+        map, then (`fit` and `fit_iterations` > 0) fitted to the held event pairs (`mosaic_fit`)."""
+        gx, gy = self.gradient[..., 0], self.gradient[..., 1]
+        initial = poisson(gx, gy)
+        p = self.params
+        if not fit or p.fit_iterations <= 0 or not self.pairs:
+            return initial
+        n = self.pairs
+        steps = self._polarity[:n] * p.contrast
+        return mosaic_fit.fit(self._pairs[:n], steps, gx, gy, self.observed(), initial, p.prior_weight,
+                              p.fit_iterations)
+
+    def image(self, fit: bool = True) -> np.ndarray:
+        """The mosaic as `to_png16` grey levels (what `etam mosaic` writes; the live service publishes
+        the quicker `fit=False` preview and saves the fitted one)."""
+        return to_png16(self.log_intensity(fit), self.observed())
 
 
 def to_png16(log_intensity: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -109,27 +138,6 @@ def from_png16(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"a mosaic is a 16-bit grey image (etam mosaic writes one), got {image.dtype} "
                          f"with shape {image.shape}")
     return image.astype(np.float32), image > 0
-
-
-def poisson(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """The image M whose differences M[:, i+1] - M[:, i] and M[j+1] - M[j] best fit the gradients (given at
-    pixel centres, so a difference takes the mean of its two pixels' gradients) in least squares; the
-    columns wrap around, the first and last rows see nothing beyond; mean zero."""
-    h, w = gx.shape
-    dx = 0.5 * (gx + np.roll(gx, -1, axis=1))  # between column i and i + 1 (wrapping)
-    dy = 0.5 * (gy[:-1] + gy[1:])  # between row j and j + 1
-    div = dx - np.roll(dx, 1, axis=1)
-    div[:-1] += dy
-    div[1:] -= dy
-    spectrum = scipy.fft.rfft(scipy.fft.dct(div.astype(np.float64), type=2, axis=0, norm="ortho"), axis=1)
-    rows = 2 * np.cos(np.pi * np.arange(h) / h) - 2
-    cols = 2 * np.cos(2 * np.pi * np.arange(spectrum.shape[1]) / w) - 2
-    eigen = rows[:, None] + cols[None, :]
-    eigen[0, 0] = 1.0
-    spectrum /= eigen
-    spectrum[0, 0] = 0.0
-    image = scipy.fft.idct(scipy.fft.irfft(spectrum, n=w, axis=1), type=2, axis=0, norm="ortho")
-    return image.astype(np.float32)
 
 
 def _samples(R: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,7 +182,7 @@ def _fold(g, P, iv, iu, hu, hv, z, noise_var, gate):
 
 @numba.njit(cache=True, nogil=True)
 def _update(x, y, t, p, rays, sensor_w, sample_t, quat, omega, last_us, g, P, n, contrast, noise_var,
-            max_travel, gate):
+            max_travel, gate, last_uv, pairs, polarity, sampling, max_pair):
     ph, pw = n.shape
     kx, ky = pw / (2 * np.pi), ph / np.pi
     j = 0
@@ -186,8 +194,6 @@ def _update(x, y, t, p, rays, sensor_w, sample_t, quat, omega, last_us, g, P, n,
         pix = y[e] * sensor_w + x[e]
         prev = last_us[pix]
         last_us[pix] = te
-        if prev < 0:
-            continue
         a = (te - sample_t[j]) / (sample_t[j + 1] - sample_t[j])
         qw = (1 - a) * quat[j, 0] + a * quat[j + 1, 0]
         qx = (1 - a) * quat[j, 1] + a * quat[j + 1, 1]
@@ -198,6 +204,11 @@ def _update(x, y, t, p, rays, sensor_w, sample_t, quat, omega, last_us, g, P, n,
         dx, dy, dz = _rotate(qw, qx, qy, qz, rays[pix, 0], rays[pix, 1], rays[pix, 2])
         horiz = dx * dx + dz * dz
         if horiz < 1e-6:  # at a pole the longitude is undefined
+            last_uv[pix, 0] = np.nan
+            continue
+        u0, v0 = _pano(dx, dy, dz, kx, ky)
+        _keep_pair(last_uv, pix, u0, v0, p[e], pw, max_pair, pairs, polarity, sampling)
+        if prev < 0:
             continue
         wx, wy, wz = omega[j, 0], omega[j, 1], omega[j, 2]
         vx, vy, vz = wy * dz - wz * dy, wz * dx - wx * dz, wx * dy - wy * dx  # d' = w x d
@@ -207,7 +218,6 @@ def _update(x, y, t, p, rays, sensor_w, sample_t, quat, omega, last_us, g, P, n,
         if hu * hu + hv * hv > max_travel * max_travel:
             continue
         # the step of C happened along the slide: it is the gradient at the slide's middle
-        u0, v0 = _pano(dx, dy, dz, kx, ky)
         u, v = u0 - 0.5 * hu, v0 - 0.5 * hv
         iu = int(np.floor(u + 0.5)) % pw
         iv = min(max(int(np.floor(v + 0.5)), 0), ph - 1)
@@ -216,3 +226,33 @@ def _update(x, y, t, p, rays, sensor_w, sample_t, quat, omega, last_us, g, P, n,
         n[iv, iu] += 1
         used += 1
     return used
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _keep_pair(last_uv, pix, u, v, on, pw, max_pair, pairs, polarity, sampling):
+    """Samples the pair (where pixel `pix` pointed at its last event, (u, v) now) for the fit, then makes
+    (u, v) its last; `sampling` (held, keep every, eligible seen) halves the pairs and the rate when full."""
+    ua, va = last_uv[pix, 0], last_uv[pix, 1]
+    last_uv[pix, 0], last_uv[pix, 1] = u, v
+    if not ua == ua:  # NaN: the pixel's first event, or it last pointed at a pole
+        return
+    du = u - ua
+    if du > pw / 2:  # the shorter way round
+        du -= pw
+    elif du < -pw / 2:
+        du += pw
+    if du * du + (v - va) * (v - va) > max_pair * max_pair:
+        return
+    sampling[2] += 1
+    if sampling[2] % sampling[1]:
+        return
+    k = sampling[0]
+    if k == len(pairs):  # full: every other pair goes, and from now on every other one is kept
+        for i in range(k // 2):
+            pairs[i] = pairs[2 * i + 1]
+            polarity[i] = polarity[2 * i + 1]
+        k = sampling[0] = k // 2
+        sampling[1] *= 2
+    pairs[k, 0], pairs[k, 1], pairs[k, 2], pairs[k, 3] = ua, va, ua + du, v
+    polarity[k] = 1 if on else -1
+    sampling[0] += 1

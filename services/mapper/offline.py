@@ -103,7 +103,7 @@ def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: Mosaic
             mosaic.add(chunk, trajectory)
     observed = write_mosaic(out, mosaic)
     return {"input": str(src), "output": str(out), "events": n_events, "events_used": mosaic.events,
-            "size": [mosaic.params.width, mosaic.params.height], "observed": observed,
+            "pairs": mosaic.pairs, "size": [mosaic.params.width, mosaic.params.height], "observed": observed,
             "poses": str(poses) if poses else "truth"}
 
 

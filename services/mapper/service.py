@@ -15,7 +15,8 @@ the rig's geometry from their CameraInfo (`T_body_cam`).
 
 With `--build mosaic` the same events and poses feed the mosaic's gradient filter instead (`etam
 mosaic`'s), and its Poisson reconstruction is published at most twice a second on
-``mapper/map/mosaic`` (a 16-bit PNG Image, 0 where never observed); `save` then writes that PNG.
+``mapper/map/mosaic`` (a 16-bit PNG Image, 0 where never observed), a preview; `save` writes the
+mosaic fitted to its event pairs as `etam mosaic` does (seconds; the reply comes when it is written).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import asyncio
 import collections
 import logging
 import time
+from collections.abc import Awaitable
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +78,7 @@ class MapperService(Service):
         self.cams = (cam, right) if method == "stereo" else (cam,)
         self.mosaic: Mosaic | None = None
         self._mosaic_published = 0.0
+        self._mosaic_lock = asyncio.Lock()  # the mosaic's arrays: folded in, or read for a save, in worker threads
         self.cameras: dict[str, CameraInfo] = {}
         self.cloud = VoxelMap()
         self.mapper: KeyframeMapper | StereoMapper | None = None
@@ -199,11 +202,12 @@ class MapperService(Service):
         if self.mosaic is None:
             self.mosaic = Mosaic(info.K, info.width, info.height, self.mosaic_params)
         mosaic = self.mosaic
-        await asyncio.to_thread(mosaic.add, ready, trajectory)
-        if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
-            return
-        self._mosaic_published = time.monotonic()
-        image = await asyncio.to_thread(mosaic.image)
+        async with self._mosaic_lock:
+            await asyncio.to_thread(mosaic.add, ready, trajectory)
+            if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
+                return
+            self._mosaic_published = time.monotonic()
+            image = await asyncio.to_thread(mosaic.image, False)  # the preview: no fit to the event pairs
         t_us = int(ready["t"][-1])
         out.publish(image_from_array(t_us, image, "png"))
         self.status.update(mosaic_events=mosaic.events, mosaic_observed=round(float((image > 0).mean()), 4))
@@ -236,7 +240,7 @@ class MapperService(Service):
             self._n_pending[cam] = 0
             self._received_us[cam] = -1
 
-    def on_command(self, cmd: Command) -> Reply | None:
+    def on_command(self, cmd: Command) -> Reply | Awaitable[Reply] | None:
         if cmd.op == "reset":
             self._clear()
             return Reply(ok=True)
@@ -253,11 +257,18 @@ class MapperService(Service):
             return Reply(ok=True, result={"path": path, "points": n})
         return None
 
-    def _save_mosaic(self, path: str) -> Reply:
-        """The mosaic as `etam mosaic` writes it (so `etam eval mosaic` reads it)."""
-        if self.mosaic is None:
+    async def _save_mosaic(self, path: str) -> Reply:
+        """The mosaic as `etam mosaic` writes it, fitted to its event pairs (seconds: the reply comes once
+        it is written; events meanwhile wait in the pending queue)."""
+        mosaic = self.mosaic  # a reset meanwhile starts a new one; this one is still saved
+        if mosaic is None:
             return Reply(ok=False, error="save: no mosaic yet (no events with poses so far)")
-        return Reply(ok=True, result={"path": path, "observed": write_mosaic(Path(path), self.mosaic)})
+        async with self._mosaic_lock:
+            try:
+                observed = await asyncio.to_thread(write_mosaic, Path(path), mosaic)
+            except OSError as exc:
+                return Reply(ok=False, error=f"save: {path}: {exc.strerror or exc}")
+        return Reply(ok=True, result={"path": path, "observed": observed, "pairs": mosaic.pairs})
 
 
 def _matrix(kf: Keyframe) -> np.ndarray:
