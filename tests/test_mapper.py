@@ -88,7 +88,7 @@ def test_trajectory_interpolates_and_clamps() -> None:
 
 
 def test_voxel_map_fuses_repeated_points_and_forgets_the_oldest_over_its_cap() -> None:
-    cloud = VoxelMap(voxel_m=0.1, max_points=3)
+    cloud = VoxelMap(voxel_m=0.1, max_points=3, min_neighbours=0)  # lone voxels shown: support is tested below
     cloud.add(np.array([[0.01, 0, 0], [1.01, 0, 0]]), np.ones(2), keyframe=0)
     cloud.add(np.array([[0.03, 0, 0]]), np.ones(1), keyframe=1)  # the same voxel as the first
     points, counts, _, last = cloud.points()
@@ -98,6 +98,24 @@ def test_voxel_map_fuses_repeated_points_and_forgets_the_oldest_over_its_cap() -
     points, _, _, last = cloud.points()
     assert len(cloud) == 3 and 0 not in last.tolist()  # the voxel only keyframe 0 saw went first
     assert not np.any(np.isclose(points[:, 0], 1.01))
+
+
+def test_voxel_map_shows_voxels_with_neighbours_and_hides_lone_ones() -> None:
+    """An edge (a line of voxels) is shown but for its two ends (one neighbour each), a lone voxel (a wrong
+    peak) is held but not shown, and shows once a later keyframe puts points beside it; what a keyframe
+    adds is reported only where supported."""
+    cloud = VoxelMap(voxel_m=0.1, min_neighbours=2)
+    edge = np.stack([np.arange(6) * 0.1 + 0.05, np.full(6, 0.05), np.full(6, 0.05)], 1)
+    lone = np.array([[2.05, 2.05, 2.05]])
+    new = cloud.add(np.vstack([edge, lone]), np.ones(7), keyframe=0)
+    assert len(cloud) == 7 and np.allclose(np.sort(new[:, 0]), edge[1:-1, 0])
+    points, *_ = cloud.points()
+    assert np.allclose(np.sort(points[:, 0]), edge[1:-1, 0])
+    new = cloud.add(np.array([[2.15, 2.05, 2.05], [2.05, 2.15, 2.05]]), np.ones(2), keyframe=1)
+    assert len(new) == 2  # each has the lone voxel and the other beside it
+    points, *_ = cloud.points()
+    assert len(points) == 7 and np.any(np.all(np.isclose(points, lone), axis=1))
+    assert len(VoxelMap(voxel_m=0.1, min_neighbours=0).add(lone, np.ones(1), keyframe=0)) == 1  # 0: no filter
 
 
 def test_ply_round_trip_ascii_and_truncated(tmp_path: Path) -> None:

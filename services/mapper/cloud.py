@@ -4,6 +4,12 @@ Each voxel keeps the mean of the points that fell in it, how many did, and the l
 it; the map keeps each keyframe's time and pose (not its images), what a saved map needs to say.
 Points of several keyframes on one surface merge instead of piling up; a map over its cap forgets the
 voxels seen longest ago, so memory stays bounded on a long flight.
+
+The map shows only voxels with support: at least `min_neighbours` other voxels in the 3 x 3 x 3 block
+around them (EMVS's radius outlier removal, on the grid). Edges are lines and surfaces of voxels; a
+lone voxel is most often a wrong peak, a lucky alignment of rays (on the `6dof` dev maps, 80-90 % of the
+lone ones are within 5 % of their depth against 93-97 % of the rest). Lone voxels are kept, not shown:
+a later keyframe may give them neighbours.
 """
 
 from __future__ import annotations
@@ -16,9 +22,14 @@ if TYPE_CHECKING:
     from services.mapper.keyframes import Keyframe
 
 
+# key offsets of a voxel's 26 neighbours (keys pack 21 bits per axis: x << 42 | y << 21 | z)
+_BLOCK = np.array([(dx << 42) + (dy << 21) + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
+                   if dx or dy or dz], np.int64)
+
+
 class VoxelMap:
-    def __init__(self, voxel_m: float = 0.03, max_points: int = 1_000_000) -> None:
-        self.voxel_m, self.max_points = voxel_m, max_points
+    def __init__(self, voxel_m: float = 0.03, max_points: int = 1_000_000, min_neighbours: int = 2) -> None:
+        self.voxel_m, self.max_points, self.min_neighbours = voxel_m, max_points, min_neighbours
         self.reset()
 
     def reset(self) -> None:
@@ -62,11 +73,24 @@ class VoxelMap:
         last = np.zeros(n, np.int64)
         np.maximum.at(last, inverse, np.concatenate([self._keyframe, np.full(len(points), keyframe)]))
         self._keys, self._sums, self._counts, self._conf, self._keyframe = uniq, sums, counts, conf, last
-        touched = np.unique(inverse[len(keys) - len(points):])
-        new = (sums[touched] / counts[touched, None]).astype(np.float32)
         if n > self.max_points:
             self._evict(n - self.max_points)
-        return new
+        touched = np.unique(self._key(points))
+        at = np.minimum(np.searchsorted(self._keys, touched), len(self._keys) - 1)
+        at = at[(self._keys[at] == touched) & self._supported(touched)]  # (a keyframe over the cap lost some)
+        return (self._sums[at] / self._counts[at, None]).astype(np.float32)
+
+    def _supported(self, keys: np.ndarray) -> np.ndarray:
+        """Which of the map's voxels `keys` have at least `min_neighbours` others in their 3 x 3 x 3 block;
+        all where that is 0."""
+        if self.min_neighbours <= 0 or not len(keys):
+            return np.ones(len(keys), bool)
+        found = np.zeros(len(keys), np.int64)
+        for off in _BLOCK:  # 26 lookups, each over every key at once
+            near = keys + off
+            at = np.minimum(np.searchsorted(self._keys, near), len(self._keys) - 1)
+            found += self._keys[at] == near
+        return found >= self.min_neighbours
 
     def _evict(self, excess: int) -> None:
         """Forgets the `excess` voxels whose last keyframe is oldest."""
@@ -75,6 +99,8 @@ class VoxelMap:
         self._conf, self._keyframe = self._conf[keep], self._keyframe[keep]
 
     def points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The map: points (N x 3 float32), their observation counts, best peak heights, last keyframes."""
-        return ((self._sums / np.maximum(self._counts, 1)[:, None]).astype(np.float32), self._counts.copy(),
-                self._conf.copy(), self._keyframe.copy())
+        """The map's supported voxels: points (N x 3 float32), their observation counts, best peak heights,
+        last keyframes."""
+        shown = self._supported(self._keys)
+        return ((self._sums[shown] / np.maximum(self._counts[shown], 1)[:, None]).astype(np.float32),
+                self._counts[shown], self._conf[shown], self._keyframe[shown])
