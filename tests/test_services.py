@@ -193,6 +193,54 @@ def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str
         plugin.wait(10)
 
 
+SLOW_COMMAND_SERVICE = """
+import asyncio, sys, time
+from services import config
+from services.messages import Reply
+from services.runtime import Service, ServiceOptions
+
+class Slow(Service):
+    kind = "slow"
+    ticks = 0
+
+    async def main(self):
+        while True:
+            self.ticks += 1
+            await asyncio.sleep(0.01)
+
+    def on_command(self, cmd):
+        async def work():
+            before = self.ticks
+            await asyncio.to_thread(time.sleep, 0.5)
+            if cmd.op == "broken":
+                raise RuntimeError("the work failed")
+            return Reply(ok=True, result={"ticks_meanwhile": self.ticks - before})
+        return work() if cmd.op in ("slow", "broken") else None
+
+raise SystemExit(Slow(ServiceOptions(sys.argv[2], "slow", config.resolve(connect=[sys.argv[1]]))).run())
+"""
+
+
+def test_a_command_with_long_work_is_answered_when_done_while_the_service_goes_on(router: str, rig: str,
+                                                                                   tmp_path) -> None:  # noqa: ANN001
+    """A handler may return an awaitable (the mosaic's save fits for seconds): its query is answered once
+    it is done, the loop runs on meanwhile, a failure in it is an error reply, and the service lives."""
+    script = tmp_path / "slow.py"
+    script.write_text(SLOW_COMMAND_SERVICE)
+    proc = subprocess.Popen([sys.executable, str(script), router, rig], cwd=ROOT, start_new_session=True)
+    try:
+        with client_session(router) as s:
+            cmd = f"etam/{rig}/slow/slow/cmd"
+            done = _query(s, cmd, Command(op="slow"), timeout=10)
+            assert done.ok and done.result["ticks_meanwhile"] > 10  # 0.5 s of work, the 10 ms loop went on
+            broken = _query(s, cmd, Command(op="broken"), timeout=10)
+            assert not broken.ok and "the work failed" in broken.error
+            assert _query(s, cmd, Command(op="ping")).ok and proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
 def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
     """camera (sim:6dof) -> mapper --poses truth: keyframe points are published, the whole map is
     answered, `save` writes a PLY that `etam eval map` could read, `reset` empties it."""
