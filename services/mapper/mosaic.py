@@ -105,15 +105,18 @@ class Mosaic:
     def log_intensity(self, fit: bool = True) -> np.ndarray:
         """The log intensity (up to an offset), H x W float32: the Poisson reconstruction of the gradient
         map, then (`fit` and `fit_iterations` > 0) fitted to the held event pairs (`mosaic_fit`)."""
-        gx, gy = self.gradient[..., 0], self.gradient[..., 1]
-        initial = poisson(gx, gy)
-        p = self.params
-        if not fit or p.fit_iterations <= 0 or not self.pairs:
+        initial = poisson(self.gradient[..., 0], self.gradient[..., 1])
+        if not fit or self.params.fit_iterations <= 0 or not self.pairs:
             return initial
-        n = self.pairs
-        steps = self._polarity[:n] * p.contrast
-        return mosaic_fit.fit(self._pairs[:n], steps, gx, gy, self.observed(), initial, p.prior_weight,
-                              p.fit_iterations)
+        return self.fitted(initial, self.params.fit_iterations)
+
+    def fitted(self, initial: np.ndarray, iterations: int, pair_stride: int = 1) -> np.ndarray:
+        """The log intensity fitted to every `pair_stride`-th held pair in `iterations` from `initial` (a
+        live view goes on from its last one, a few iterations at a time)."""
+        p, n = self.params, self.pairs
+        return mosaic_fit.fit(self._pairs[:n:pair_stride], self._polarity[:n:pair_stride] * p.contrast,
+                              self.gradient[..., 0], self.gradient[..., 1], self.observed(), initial,
+                              p.prior_weight, iterations)
 
     def image(self, fit: bool = True) -> np.ndarray:
         """The mosaic as `to_png16` grey levels (what `etam mosaic` writes; the live service publishes

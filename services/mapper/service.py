@@ -14,9 +14,10 @@ events, held until poses cover them, feed the stereo mapper (`etam map --method 
 the rig's geometry from their CameraInfo (`T_body_cam`).
 
 With `--build mosaic` the same events and poses feed the mosaic's gradient filter instead (`etam
-mosaic`'s), and its Poisson reconstruction is published at most twice a second on
-``mapper/map/mosaic`` (a 16-bit PNG Image, 0 where never observed), a preview; `save` writes the
-mosaic fitted to its event pairs as `etam mosaic` does (seconds; the reply comes when it is written).
+mosaic`'s), and the mosaic is published at most twice a second on ``mapper/map/mosaic`` (a 16-bit PNG
+Image, 0 where never observed): its Poisson reconstruction plus the correction the fit to the event
+pairs found so far, fitted a little further each time; `save` writes the mosaic fitted in full, as
+`etam mosaic` does (seconds; the reply comes when it is written).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import numpy as np
 from services import keys
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
-from services.mapper.mosaic import Mosaic, MosaicParams
+from services.mapper.mosaic import Mosaic, MosaicParams, to_png16
 from services.mapper.offline import METHODS, write_mosaic
 from services.mapper.ply import write_map
 from services.mapper.stereo import StereoMapper, StereoParams, relative_pose
@@ -51,7 +52,9 @@ WORK_PERIOD_S = 0.05  # new events and poses are taken in batches at most this o
 # events held per camera while they wait for poses or for a keyframe's sweep (seconds on a busy machine), 128 MB;
 # the oldest go beyond
 PENDING_EVENTS = 8_000_000
-MOSAIC_PERIOD_S = 0.5  # the mosaic is rebuilt (a Poisson solve, ~0.2 s at 2048 x 1024) and published this often
+MOSAIC_PERIOD_S = 0.5  # the mosaic is rebuilt (Poisson, then 2 fit iterations) and published this often
+LIVE_FIT_ITERATIONS, LIVE_PAIR_STRIDE = 2, 4  # ... on a quarter of the pairs
+MOSAIC_DUTY = 4  # ... or less often: drawing takes at most 1 / MOSAIC_DUTY of the time
 STEREO_FRAMES_PER_BATCH = 2  # a batch (WORK_PERIOD_S, longer when behind) matches at most this many stereo frames
 MODES = ("depth", "mosaic")
 
@@ -77,7 +80,8 @@ class MapperService(Service):
         self.max_rate = max_rate  # events per second of stream the sweep takes at most (0: all)
         self.cams = (cam, right) if method == "stereo" else (cam,)
         self.mosaic: Mosaic | None = None
-        self._mosaic_published = 0.0
+        self._mosaic_due = 0.0  # when the next mosaic may be drawn
+        self._mosaic_correction: np.ndarray | None = None  # what the live fit adds to the Poisson reconstruction
         self._mosaic_lock = asyncio.Lock()  # the mosaic's arrays: folded in, or read for a save, in worker threads
         self.cameras: dict[str, CameraInfo] = {}
         self.cloud = VoxelMap()
@@ -204,13 +208,27 @@ class MapperService(Service):
         mosaic = self.mosaic
         async with self._mosaic_lock:
             await asyncio.to_thread(mosaic.add, ready, trajectory)
-            if time.monotonic() - self._mosaic_published < MOSAIC_PERIOD_S or not len(ready):
+            if time.monotonic() < self._mosaic_due or not len(ready):
                 return
-            self._mosaic_published = time.monotonic()
-            image = await asyncio.to_thread(mosaic.image, False)  # the preview: no fit to the event pairs
+            started = time.monotonic()
+            image = await asyncio.to_thread(self._mosaic_view, mosaic)
+            took = time.monotonic() - started  # a large mosaic is drawn less often
+            self._mosaic_due = started + max(MOSAIC_PERIOD_S, MOSAIC_DUTY * took)
         t_us = int(ready["t"][-1])
         out.publish(image_from_array(t_us, image, "png"))
         self.status.update(mosaic_events=mosaic.events, mosaic_observed=round(float((image > 0).mean()), 4))
+
+    def _mosaic_view(self, mosaic: Mosaic) -> np.ndarray:
+        """The published mosaic, as `to_png16` grey levels: the Poisson reconstruction plus the correction
+        the last view's fit found, fitted a little further to a sample of the event pairs (a full fit
+        each time would take seconds; this one follows it within about a dB on the dev seed)."""
+        poisson = mosaic.log_intensity(fit=False)
+        if not mosaic.pairs or mosaic.params.fit_iterations <= 0:
+            return to_png16(poisson, mosaic.observed())
+        start = poisson if self._mosaic_correction is None else poisson + self._mosaic_correction
+        fitted = mosaic.fitted(start, LIVE_FIT_ITERATIONS, LIVE_PAIR_STRIDE)
+        self._mosaic_correction = fitted - poisson
+        return to_png16(fitted, mosaic.observed())
 
     def _take_until(self, cam: str, until_us: int) -> np.ndarray:
         """Camera `cam`'s pending events up to `until_us` (later ones stay pending), in time order."""
@@ -234,6 +252,7 @@ class MapperService(Service):
         self.cloud.reset()
         self.mapper = None
         self.mosaic = None
+        self._mosaic_correction = None
         self._rows.clear()
         for cam in self.cams:
             self._pending[cam].clear()
