@@ -61,7 +61,8 @@ class VoxelMap:
         points = np.asarray(points, np.float64).reshape(-1, 3)
         if not len(points):
             return np.zeros((0, 3), np.float32)
-        keys = np.concatenate([self._keys, self._key(points)])
+        added = self._key(points)
+        keys = np.concatenate([self._keys, added])
         uniq, inverse = np.unique(keys, return_inverse=True)
         n = len(uniq)
         sums = np.zeros((n, 3))
@@ -75,7 +76,7 @@ class VoxelMap:
         self._keys, self._sums, self._counts, self._conf, self._keyframe = uniq, sums, counts, conf, last
         if n > self.max_points:
             self._evict(n - self.max_points)
-        touched = np.unique(self._key(points))
+        touched = np.unique(added)
         at = np.minimum(np.searchsorted(self._keys, touched), len(self._keys) - 1)
         at = at[(self._keys[at] == touched) & self._supported(touched)]  # (a keyframe over the cap lost some)
         return (self._sums[at] / self._counts[at, None]).astype(np.float32)

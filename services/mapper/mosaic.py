@@ -118,10 +118,9 @@ class Mosaic:
                               self.gradient[..., 0], self.gradient[..., 1], self.observed(), initial,
                               p.prior_weight, iterations)
 
-    def image(self, fit: bool = True) -> np.ndarray:
-        """The mosaic as `to_png16` grey levels (what `etam mosaic` writes; the live service publishes
-        the quicker `fit=False` preview and saves the fitted one)."""
-        return to_png16(self.log_intensity(fit), self.observed())
+    def image(self) -> np.ndarray:
+        """The fitted mosaic as `to_png16` grey levels (what `etam mosaic` and the live service's save write)."""
+        return to_png16(self.log_intensity(), self.observed())
 
 
 def to_png16(log_intensity: np.ndarray, observed: np.ndarray) -> np.ndarray:
