@@ -1,0 +1,1 @@
+"""Camera ego-motion from events: angular velocity by contrast maximisation, integrated to orientation."""
