@@ -333,6 +333,25 @@ def _print_scores(scores: dict) -> None:
         print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
 
 
+def _cmd_odom(args: argparse.Namespace) -> int:
+    from services.tracker.offline import odometry
+
+    _require_files(args.input)
+    summary = odometry(Path(args.input), _output(args.out), progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['poses']} poses ({summary['mode']}, "
+          f"{summary['still']} still, {summary['events']} events) to {args.out}")
+    return 0
+
+
+def _cmd_eval_odometry(args: argparse.Namespace) -> int:
+    from services.tracker.offline import eval_odometry
+
+    _require_files(args.pred, args.truth)
+    scores = eval_odometry(Path(args.pred), Path(args.truth), args.align)
+    print(json.dumps(scores)) if args.json else _print_scores(scores)
+    return 0
+
+
 def _cmd_eval_map(args: argparse.Namespace) -> int:
     from services.mapper.offline import eval_map
 
@@ -511,6 +530,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 
+    p = sub.add_parser("odom", help="camera orientation of a recording by contrast maximisation into a TUM "
+                                    "trajectory (t tx ty tz qx qy qz qw, T_world_cam)")
+    p.add_argument("input", help="any readable event file (a rotating camera)")
+    p.add_argument("--mode", default="rotation", choices=("rotation",),
+                   help="rotation: angular velocity by contrast maximisation, integrated (6-DoF is not yet built)")
+    p.add_argument("--out", default="traj.tum", help="TUM trajectory to write (default traj.tum)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
+    p.set_defaults(func=_cmd_odom)
+
     p = sub.add_parser("map", help="semi-dense 3D map of a recording (EMVS space sweep, or ESVO stereo for two "
                                    "cameras) into a PLY point cloud")
     p.add_argument("input", help="any readable event file")
@@ -545,6 +573,14 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--truth", required=True, help="a recording with /truth/depth and /truth/poses (etam sim 6dof)")
     q.add_argument("--json", action="store_true", help="machine-readable output")
     q.set_defaults(func=_cmd_eval_map)
+    q = kinds.add_parser("odometry", help="ATE after alignment, RPE per second, angular velocity error (evo)")
+    q.add_argument("--pred", required=True, help="TUM trajectory from etam odom")
+    q.add_argument("--truth", required=True, help="a recording with /truth/poses (etam sim rotation), or a TUM "
+                                                  "ground truth file (.txt or .tum, e.g. an ECD groundtruth.txt)")
+    q.add_argument("--align", default="auto", choices=("auto", "se3", "sim3", "origin"),
+                   help="auto (default): se3 (Umeyama) if the truth moves, else origin (first poses made equal)")
+    q.add_argument("--json", action="store_true", help="machine-readable output")
+    q.set_defaults(func=_cmd_eval_odometry)
     q = kinds.add_parser("mosaic", help="PSNR and SSIM of a mosaic against the truth panorama (log intensity, "
                                         "observed pixels, after removing offset and scale)")
     q.add_argument("--mosaic", required=True, help="PNG from etam mosaic")

@@ -3,11 +3,18 @@ events of a camera turning at a known rate in a field of stars (points at infini
 
 from __future__ import annotations
 
+import json
+import subprocess
+
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
+from services.mapper.trajectory import read_tum
 from services.tracker.ego.contrast import RotationContrast
+from services.tracker.ego.evaluation import evaluate_odometry
 from services.tracker.ego.rotation import STILL, TRACKING, RotationParams, RotationTracker
+from tests.conftest import etam_argv
 
 W, H = 240, 180
 K = np.array([[200.0, 0, 120], [0, 200.0, 90], [0, 0, 1]])
@@ -72,3 +79,50 @@ def test_a_still_scene_is_a_still_camera():
     estimates = RotationTracker(K, W, H).add(ev)
     assert estimates and all(e.state == STILL and not e.omega.any() for e in estimates)
     np.testing.assert_allclose(estimates[-1].quat, [0, 0, 0, 1])
+
+
+def _turning(rate: np.ndarray, seconds: float = 5.0, hz: float = 50.0, radius_m: float = 0.0) -> np.ndarray:
+    """TUM rows of a camera turning at `rate` (rad/s) from R = I, moving on a circle of `radius_m`."""
+    t = np.arange(0, seconds, 1 / hz)
+    quat = Rotation.from_rotvec(np.outer(t, rate)).as_quat()
+    pos = radius_m * np.column_stack([np.cos(t), np.sin(t), 0.3 * t])
+    return np.column_stack([t, pos, quat])
+
+
+def test_eval_odometry_scores_known_errors():
+    rate = np.array([0.2, -1.0, 0.5])
+    truth = _turning(rate, radius_m=1.0)
+    exact = evaluate_odometry(truth, truth)
+    assert exact["alignment"] == "se3" and exact["ate_m"] < 1e-9 and exact["omega_rms_deg_s"] < 1e-6
+    # 2 % too fast: the rate error is 2 % of the (constant) peak, the orientation 2 % of the angle turned
+    fast = _turning(1.02 * rate, radius_m=1.0)
+    scores = evaluate_odometry(fast, truth, align="origin")
+    assert scores["omega_rms_of_peak"] == pytest.approx(0.02, rel=0.02)
+    turned = np.degrees(np.linalg.norm(rate) * truth[-1, 0])
+    assert scores["final_rot_err_deg"] == pytest.approx(0.02 * turned, rel=0.02)
+    assert scores["rpe_deg_per_s"] == pytest.approx(0.02 * np.degrees(np.linalg.norm(rate)), rel=0.05)
+    # twice the size: only a similarity aligns it
+    scaled = truth.copy()
+    scaled[:, 1:4] *= 2
+    assert evaluate_odometry(scaled, truth, align="se3")["ate_m"] > 0.1
+    assert evaluate_odometry(scaled, truth, align="sim3")["ate_m"] < 1e-6
+    with pytest.raises(ValueError, match="span space"):
+        evaluate_odometry(_turning(rate), _turning(rate), align="se3")
+
+
+def test_odom_and_eval_odometry_commands(tmp_path):
+    h5, tum = tmp_path / "rot.h5", tmp_path / "traj.tum"
+    subprocess.run(etam_argv("sim", "rotation", "--out", str(h5), "--duration", "0.5", "--seed", "4", "--json"),
+                   check=True, capture_output=True, timeout=120)
+    made = subprocess.run(etam_argv("odom", str(h5), "--out", str(tum), "--json"), capture_output=True, text=True,
+                          timeout=120)
+    assert made.returncode == 0, made.stderr
+    assert json.loads(made.stdout)["poses"] == len(read_tum(str(tum))) >= 45
+    scored = subprocess.run(etam_argv("eval", "odometry", "--pred", str(tum), "--truth", str(h5), "--json"),
+                            capture_output=True, text=True, timeout=120)
+    assert scored.returncode == 0, scored.stderr
+    scores = json.loads(scored.stdout)
+    assert scores["alignment"] == "origin" and scores["omega_rms_of_peak"] < 0.03 and scores["final_rot_err_deg"] < 1
+    wrong = subprocess.run(etam_argv("eval", "odometry", "--pred", str(h5), "--truth", str(h5)), capture_output=True,
+                           text=True, timeout=120)
+    assert wrong.returncode != 0 and "not a TUM trajectory" in wrong.stderr and "Traceback" not in wrong.stderr

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numba
@@ -18,6 +19,9 @@ import numpy as np
 
 from services import events as ev_ops
 from services.messages import EVENT_DTYPE
+
+if TYPE_CHECKING:
+    from services.camera.formats import Recording
 
 
 @numba.njit(cache=True, nogil=True)
@@ -181,6 +185,14 @@ class Undistort:
         und = np.rint(und.reshape(-1, 2)).astype(np.int64)
         self._ok = (und[:, 0] >= 0) & (und[:, 0] < width) & (und[:, 1] >= 0) & (und[:, 1] < height)
         self._x, self._y = und[:, 0].astype(np.uint16), und[:, 1].astype(np.uint16)
+
+    @classmethod
+    def of(cls, rec: Recording) -> Undistort | None:
+        """The undistortion of a recording's calibration; None where it has no distortion to undo."""
+        cal = rec.calibration
+        if cal is None or cal.dist_model == "none" or not np.any(cal.dist):
+            return None
+        return cls(rec.width, rec.height, rec.K_or_default(), cal.dist_model, cal.dist)
 
     def __call__(self, events: np.ndarray) -> np.ndarray:
         events = _inside(events, self.width, self.height)

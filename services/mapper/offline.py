@@ -151,9 +151,7 @@ def _trajectory(rec: Recording, src: Path, poses: Path | None) -> Trajectory:
 def _posed_chunks(rec: Recording, trajectory: Trajectory, progress: bool) -> Iterator[np.ndarray]:
     """The recording's events inside the trajectory's span (poses are not extrapolated), undistorted where
     the file is calibrated with distortion, with a progress bar."""
-    cal = rec.calibration
-    undistort = Undistort(rec.width, rec.height, rec.K_or_default(), cal.dist_model, cal.dist) \
-        if cal is not None and cal.dist_model != "none" and np.any(cal.dist) else None
+    undistort = Undistort.of(rec)
     with tqdm(unit="ev", unit_scale=True, desc=rec.path.name, disable=not progress) as bar:
         for chunk in rec.chunks():
             bar.update(len(chunk))

@@ -38,8 +38,16 @@ class Trajectory:
 
 def read_tum(path: str) -> np.ndarray:
     """The rows (t_s tx ty tz qx qy qz qw) of a TUM trajectory file; '#' lines are comments."""
-    rows = np.loadtxt(path, comments="#", ndmin=2)
+    try:
+        rows = np.loadtxt(path, comments="#", ndmin=2)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a TUM trajectory (t tx ty tz qx qy qz qw per line): {exc}") from None
     if rows.shape[1] != 8:
         raise ValueError(f"{path}: a TUM trajectory has 8 columns per line (t tx ty tz qx qy qz qw), "
                          f"found {rows.shape[1]}")
     return rows
+
+
+def write_tum(path: str, rows: np.ndarray) -> None:
+    """TUM rows (t_s tx ty tz qx qy qz qw) as a trajectory file, with a header comment."""
+    np.savetxt(path, np.asarray(rows, np.float64).reshape(-1, 8), fmt="%.6f", header="t tx ty tz qx qy qz qw")

@@ -1,4 +1,5 @@
-"""Offline tracking commands: `etam track` (a recording to a tracks CSV) and `etam eval tracking`."""
+"""Offline tracking commands: `etam track` (a recording to a tracks CSV), `etam odom` (a recording to a
+TUM trajectory), `etam eval tracking` and `etam eval odometry`."""
 
 from __future__ import annotations
 
@@ -9,8 +10,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from services.camera.filters import Undistort
 from services.camera.formats import FormatError, open_recording
 from services.camera.formats.kernels import first_at_or_after
+from services.mapper.trajectory import read_tum, write_tum
+from services.tracker.ego.evaluation import evaluate_odometry
+from services.tracker.ego.rotation import STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
@@ -49,6 +54,48 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
     ids = np.unique(table[:, 1]) if len(table) else np.zeros(0)
     return {"input": str(src), "output": str(out), "events": n_events, "updates": len(rows),
             "boxes": len(table), "track_ids": len(ids)}
+
+
+def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True) -> dict[str, Any]:
+    """Run the rotation tracker over a recording's first camera (undistorted where calibrated so) and write
+    its poses (T_world_cam, the world frame being the camera's at the first event) as a TUM file."""
+    rows = []
+    with open_recording(src) as rec:
+        tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
+        undistort = Undistort.of(rec)
+        n_events = still = 0
+        with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
+            for chunk in rec.chunks():
+                n_events += len(chunk)
+                bar.update(len(chunk))
+                for est in tracker.add(undistort(chunk) if undistort is not None else chunk):
+                    rows.append([est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
+                    still += est.state == STILL
+    write_tum(str(out), np.asarray(rows).reshape(-1, 8))
+    return {"input": str(src), "output": str(out), "mode": "rotation", "events": n_events, "poses": len(rows),
+            "still": still, "rate_hz": 1e6 / tracker.params.step_us}
+
+
+def eval_odometry(pred: Path, truth: Path, align: str = "auto") -> dict[str, Any]:
+    """`etam eval odometry`: the scores of a TUM trajectory against a recording's truth poses (and angular
+    velocity, where it has it) or a TUM ground-truth file (`.txt`, `.tum`)."""
+    estimate = read_tum(str(pred))
+    omega = None
+    if truth.suffix in (".txt", ".tum"):
+        poses = read_tum(str(truth))
+    else:
+        try:
+            with open_recording(truth) as rec:
+                poses, omega = rec.truth.poses, rec.truth.omega
+        except FormatError as exc:
+            raise ValueError(str(exc)) from None
+        if poses is None:
+            raise ValueError(f"{truth}: has no ground-truth poses (/truth/poses)")
+    try:
+        scores = evaluate_odometry(estimate, poses, omega, align)
+    except ValueError as exc:
+        raise ValueError(f"{pred} against {truth}: {exc}") from None
+    return {"pred": str(pred), "truth": str(truth), **scores}
 
 
 def _rows(tracker: ObjectTracker, t_us: int) -> np.ndarray:
