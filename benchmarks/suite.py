@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import filters, latency, mapping, mosaic, playback, readers, tracking, transport, writers
+from benchmarks import filters, latency, mapping, mosaic, odometry, playback, readers, tracking, transport, writers
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -41,6 +41,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "tracking-held-out": tracking.held_out,
     "mapping": mapping.run,
     "mosaic": mosaic.run,
+    "odometry": odometry.run,
     "latency": latency.run,
     "simulator": _simulator,
 }
@@ -149,6 +150,18 @@ def format_results(results: dict) -> str:
         else:
             lines.append(f"{row['stage']} {row['size']}: {row['s_per_image'] * 1e3:.0f} ms per image "
                          f"({row['pairs']} event pairs)")
+    for row in results.get("odometry", []):
+        if row["stage"] == "odometry rotation speed":
+            lines.append(f"{row['stage']} ({'panoramic map' if row['panorama'] else 'integration alone'}): "
+                         f"{row['estimates_per_s']:.0f} estimates/s, {row['ms_per_estimate']:.2f} ms each, "
+                         f"{row['realtime_factor']:.1f}x real time on a {row['stream_events_per_s'] / 1e6:.2f} Mev/s "
+                         f"stream, one core")
+        else:
+            lines.append(f"{row['stage']} seed {row['seed']!s:>9}: angular velocity RMS {row['omega_rms_deg_s']:.1f} "
+                         f"deg/s = {row['omega_rms_of_peak']:.2%} of the {row['omega_peak_deg_s']:.0f} deg/s peak, "
+                         f"orientation error at the end {row['final_rot_err_deg']:.2f} deg (RMS "
+                         f"{row['ate_rot_deg']:.2f}), RPE {row['rpe_deg_per_s']:.2f} deg/s; integration alone: "
+                         f"{row['integrated_final_rot_err_deg']:.2f} deg at the end")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

@@ -17,6 +17,7 @@ from zenoh import ZError
 from services import config
 from services.camera.formats import FormatError
 from services.camera.sources import SourceError
+from services.tracker.ego import MODES as EGO_MODES
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, method_params
 
 log = logging.getLogger("etam")
@@ -116,7 +117,7 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise config.ConfigError(str(exc)) from None
     return TrackerService(_service_options(args, "objects"), method_params(args.method), cam=args.cam,
-                          sizes=sizes).run()
+                          sizes=sizes, ego=args.ego).run()
 
 
 def _cmd_mapper(args: argparse.Namespace) -> int:
@@ -137,10 +138,13 @@ def _cmd_web(args: argparse.Namespace) -> int:
     return WebService(_service_options(args, "web"), host=args.host, port=args.port).run()
 
 
-# sources whose truth poses the mapper maps with in `etam up`, and its flags, until the tracker's ego-motion gives
-# poses; the live mosaic at half size: its Poisson solve costs a fifth, leaving the cores to the camera
+# sources the mapper maps in `etam up`, and its flags: with the simulator's truth poses, but the spinning camera's
+# mosaic from the tracker's own rotation estimates (see EGO_SIMS), closing the loop; the live mosaic at half
+# size: its Poisson solve costs a fifth, leaving the cores to the camera
 MAPPED_SIMS = {"sim:6dof": (), "sim:stereo": ("--method", "stereo"),
-               "sim:rotation": ("--build", "mosaic", "--size", "1024x512")}
+               "sim:rotation": ("--build", "mosaic", "--size", "1024x512", "--poses", "ego")}
+# sources whose tracker also estimates the camera's motion in `etam up`, and how
+EGO_SIMS = {"sim:rotation": "rotation"}
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -170,6 +174,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
     parse_chain([f for f in args.filter or [] if f != "undistort"], sources[0].width, sources[0].height)
     if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
         opts.tracker_args = ("--cam", "cam0")
+    if args.source in EGO_SIMS:
+        opts.tracker_args += ("--ego", EGO_SIMS[args.source])
     return up(opts)
 
 
@@ -462,6 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cam", default="*",
                    help="the camera whose events it tracks (default *: every camera; their tracks share one key, so "
                         "a rig of several cameras is better served by one tracker per camera, each with --name)")
+    p.add_argument("--ego", default="off", choices=EGO_MODES,
+                   help="camera ego-motion on tracker/ego/pose: rotation (a turning camera: angular velocity by "
+                        "contrast maximisation, tracked against a panoramic map of the events), or off (default)")
     p.add_argument("--object-size", action="append", metavar="[ID=]M",
                    help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
                         "M for every target, ID=M for one track id; repeatable")

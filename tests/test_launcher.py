@@ -181,6 +181,27 @@ def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig
     assert stats["messages"] >= 3 and stats["max_gap_s"] < SILENT_S / 2  # Stats kept flowing, once started
     assert report["keys"][f"etam/{rig}/camera/cam0/truth/pose"]["messages"] > 5
     assert "plays slower than real time" in err
+    # the loop closed: the tracker's rotation estimates, and the mapper's mosaic drawn with them
+    assert report["keys"][f"etam/{rig}/tracker/ego/pose"]["messages"] > 20
+    assert report["keys"][f"etam/{rig}/mapper/map/mosaic"]["messages"] >= 1
+
+
+def test_up_on_a_spinning_camera_closes_the_loop(monkeypatch) -> None:  # noqa: ANN001
+    """`etam up --source sim:rotation`: the tracker estimates the rotation and the mapper draws the mosaic
+    with those poses, not the simulator's truth."""
+    import services.launcher
+    from services import cli
+    from services.launcher import _children
+
+    started = []
+    monkeypatch.setattr(services.launcher, "up", lambda opts: started.append(opts) or 0)
+    for source in ("sim:rotation", "sim:6dof"):
+        assert cli.main(["up", "--source", source, "--no-web"]) == 0
+    spin, moving = ({c.name: c.argv for c in _children(opts)} for opts in started)
+    assert spin["tracker"][-2:] == ["--ego", "rotation"] and "--ego" not in moving["tracker"]
+    spin_args, moving_args = (cli.build_parser().parse_args(argv[argv.index("mapper"):])
+                              for argv in (spin["mapper"], moving["mapper"]))
+    assert spin_args.poses == "ego" and spin_args.build == "mosaic" and moving_args.poses == "truth"
 
 
 def test_up_on_a_rig_tracks_boxes_of_its_first_camera_only(monkeypatch) -> None:  # noqa: ANN001

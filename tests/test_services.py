@@ -325,3 +325,29 @@ def test_mapper_service_builds_the_mosaic_of_a_spinning_camera(router: str, rig:
     cv2.imwrite(str(live), image_to_array(later))
     assert eval_mosaic(live, truth)["psnr_db"] > 20  # the tenth published one, fitted as it goes (Poisson alone: 17)
     assert scored["psnr_db"] > 20  # fitted in full (what it gains over Poisson alone: test_mosaic checks it)
+
+
+def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: str) -> None:
+    """camera (sim:rotation) -> tracker --ego rotation: a Pose with angular velocity on tracker/ego/pose about
+    every 10 ms of sensor time (at each window's middle), in time order, near the camera's truth poses (the
+    world frame of both: the camera's at the start)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from services.messages import Pose
+
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", "--source", "sim:rotation", *common), spawn("tracker", "--ego", "rotation", *common), \
+            client_session(router) as s:
+        ego, truth = Collector(s, f"etam/{rig}/tracker/ego/pose"), Collector(s, f"etam/{rig}/camera/cam0/truth/pose")
+        poses = wait_for(lambda: ego.of(Pose) if len(ego.of(Pose)) >= 100 else None, 120, "100 ego poses")
+        true = truth.of(Pose)
+    times = [p.t for p in poses]
+    assert times == sorted(times) and 9_000 < np.median(np.diff(times)) < 11_000
+    assert all(p.omega is not None and p.child == "cam0" for p in poses)
+    true_t = np.array([p.t for p in true], np.float64)
+    slerp = Slerp(true_t, Rotation.from_quat([p.q for p in true]))
+    scored = [p for p in poses if true_t[0] <= p.t <= true_t[-1]]
+    errors = np.degrees([(slerp(p.t).inv() * Rotation.from_quat(p.q)).magnitude() for p in scored])
+    assert len(scored) >= 50 and errors.max() < 3.0
+    speeds = np.degrees([np.linalg.norm(p.omega) for p in scored])
+    assert speeds[-1] > 30  # the camera is turning by then, and the estimate says so

@@ -1,8 +1,15 @@
-"""The tracker service: object tracks from the camera's event packets (``tracker/objects/tracks``).
+"""The tracker service: object tracks from the camera's event packets (``tracker/objects/tracks``),
+and with `ego="rotation"` the camera's own rotation (``tracker/ego/pose``, a Pose with `omega` for every
+estimate, 100 Hz; see `ego/rotation.py`).
 
 Each track gets a 3D position (`xyz`, camera frame) when it can: from the latest depth image of the
 same camera (the mapper's, or a simulator's truth) where the box holds valid depth, else from a
 configured object width and the camera's intrinsics (Z = fx * size / pixels).
+
+The ego-motion follows one camera (the first to send events, or `cam` where it names one) on a
+subscription of its own, in a worker thread (its kernels release the GIL), so a slow estimate delays
+neither the object tracks nor the service's commands; it starts once that camera's intrinsics are
+known, and starts again (a new world frame) where the camera's time goes back.
 """
 
 from __future__ import annotations
@@ -14,8 +21,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services import keys
-from services.messages import CameraInfo, Command, EventPacket, Image, MessageError, Reply, Tracks, image_to_array
+from services.messages import (CameraInfo, Command, EventPacket, Image, MessageError, Pose, Reply, Tracks,
+                               image_to_array)
 from services.runtime import Service, ServiceOptions
+from services.tracker.ego import MODES as EGO_MODES
+from services.tracker.ego.rotation import RotationParams, RotationTracker
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
 
@@ -63,8 +73,12 @@ class TrackerService(Service):
     kind = "tracker"
 
     def __init__(self, options: ServiceOptions, params: TrackerParams | None = None, cam: str = "*",
-                 sizes: ObjectSizes | None = None) -> None:
+                 sizes: ObjectSizes | None = None, ego: str = "off") -> None:
         super().__init__(options)
+        if ego not in EGO_MODES:
+            raise ValueError(f"ego-motion {ego!r} is not one of {', '.join(EGO_MODES)}")
+        self.ego = ego
+        self.rotation: RotationTracker | None = None
         self.tracker_params = params or TrackerParams()
         self.cam = cam
         self.sizes = sizes or ObjectSizes()
@@ -78,11 +92,36 @@ class TrackerService(Service):
 
     async def main(self) -> None:
         await asyncio.gather(self._track(), self.follow_cameras(self.cam, self.cameras, self._missing_intrinsics),
-                             self._depths())
+                             self._depths(), *((self._ego(),) if self.ego != "off" else ()))
 
     def _missing_intrinsics(self) -> bool:
         """Whether a camera sending events (or none yet) has no known intrinsics."""
         return not self.streams or any(_camera(key) not in self.cameras for key in self.streams)
+
+    async def _ego(self) -> None:
+        """Rotation estimates of the first camera that sends events (one, even where `cam` matches several:
+        a rig turns as one), published as Poses on ``tracker/ego/pose``."""
+        out = self.publisher(keys.key(self.rig, "tracker", "ego", "pose"))
+        followed, last_us, waiting = "", -1, False
+        async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo",
+                                             maxsize=1024):
+            assert isinstance(msg, EventPacket)
+            cam = _camera(key)
+            followed = followed or cam
+            if cam != followed or self.paused:
+                continue
+            info = self.cameras.get(cam)
+            if info is None:
+                if not waiting:
+                    log.info("ego-motion of %s waits for its intrinsics", cam)
+                waiting = True
+                continue
+            if self.rotation is None or msg.stamp < last_us:
+                log.info("ego-motion (rotation) of %s from %d us on", cam, msg.stamp)
+                self.rotation = RotationTracker(info.K, info.width, info.height, RotationParams())
+            last_us = msg.stamp
+            for est in await asyncio.to_thread(self.rotation.add, msg.events):
+                out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.zeros(3), q=est.quat, child=cam, omega=est.omega))
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
@@ -155,6 +194,7 @@ class TrackerService(Service):
         if cmd.op == "reset":
             for stream in self.streams.values():
                 stream.tracker.reset()
+            self.rotation = None  # ego-motion starts again from the next packet
             return Reply(ok=True)
         return None
 

@@ -5,8 +5,9 @@ the ray exp([w (t - t_ref)]x) r of the one it saw at t_ref. Warping each event's
 this way and voting it bilinearly into an image of warped events (IWE) gives a sharp image when w
 is right and a blurred one otherwise; the variance of the IWE (smoothed by a small Gaussian) is the
 contrast that is maximised. Its gradient is exact for bilinear voting: with S the IWE smoothed
-twice (a Gaussian of sigma * sqrt(2)), d var / dw = 2 / n_px * sum_k grad S(x_k') . dx_k'/dw, so
-one objective and gradient cost two passes over the events and two blurs, whatever the window.
+twice over (a Gaussian of sigma where the variance's is sigma / sqrt(2)), d var / dw = 2 / n_px *
+sum_k grad S(x_k') . dx_k'/dw, so one objective and gradient cost two passes over the events and
+one blur, whatever the window.
 """
 
 from __future__ import annotations
@@ -29,18 +30,20 @@ def _warp(rays, dt, omega, fx, fy, cx, cy, u, v, ju, jv):  # noqa: ANN001, ANN20
         tx, ty, tz = wx * s, wy * s, wz * s
         phi = speed * abs(s)
         rx, ry, rz = rays[k, 0], rays[k, 1], rays[k, 2]
-        if phi > 1e-9:
-            ax, ay, az = tx / phi, ty / phi, tz / phi
-            c, sn = math.cos(phi), math.sin(phi)
-            dot = ax * rx + ay * ry + az * rz
-            px = rx * c + (ay * rz - az * ry) * sn + ax * dot * (1 - c)
-            py = ry * c + (az * rx - ax * rz) * sn + ay * dot * (1 - c)
-            pz = rz * c + (ax * ry - ay * rx) * sn + az * dot * (1 - c)
-            a1 = (1 - c) / (phi * phi)
-            a2 = (phi - sn) / (phi * phi * phi)
+        # Rodrigues with t = w dt unnormalised: R r = r + b (t x r) + a1 t (t . r) - a1 |t|^2 r, where
+        # b = sin(phi) / phi and a1 = (1 - cos(phi)) / phi^2; by their series where phi is small (a window
+        # turns less than 0.5 rad: the terms left out are below 1e-8), the libm calls cost more than the rest
+        q = phi * phi
+        if phi < 0.5:
+            b = 1 - q / 6 * (1 - q / 20 * (1 - q / 42))
+            a1 = 0.5 * (1 - q / 12 * (1 - q / 30 * (1 - q / 56)))
+            a2 = (1 - q / 20 * (1 - q / 42 * (1 - q / 72))) / 6
         else:
-            px, py, pz = rx, ry, rz
-            a1, a2 = 0.5, 1.0 / 6.0
+            b, a1, a2 = math.sin(phi) / phi, (1 - math.cos(phi)) / q, (phi - math.sin(phi)) / (q * phi)
+        dot = tx * rx + ty * ry + tz * rz
+        px = rx + b * (ty * rz - tz * ry) + a1 * (tx * dot - q * rx)
+        py = ry + b * (tz * rx - tx * rz) + a1 * (ty * dot - q * ry)
+        pz = rz + b * (tx * ry - ty * rx) + a1 * (tz * dot - q * rz)
         if pz < 1e-3:
             u[k] = -1e9
             v[k] = -1e9
@@ -49,7 +52,7 @@ def _warp(rays, dt, omega, fx, fy, cx, cy, u, v, ju, jv):  # noqa: ANN001, ANN20
         u[k] = fx * px * iz + cx
         v[k] = fy * py * iz + cy
         # J_l = I + a1 [t]x + a2 [t]x^2, [t]x^2 = t t^T - |t|^2 I
-        tt = tx * tx + ty * ty + tz * tz
+        tt = q
         j00, j11, j22 = 1 + a2 * (tx * tx - tt), 1 + a2 * (ty * ty - tt), 1 + a2 * (tz * tz - tt)
         j01, j10 = -a1 * tz + a2 * tx * ty, a1 * tz + a2 * tx * ty
         j02, j20 = a1 * ty + a2 * tx * tz, -a1 * ty + a2 * tx * tz
@@ -112,8 +115,7 @@ class RotationContrast:
         self.fx, self.fy, self.cx, self.cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         self.sigma = sigma_px
         self.image = np.zeros((height, width), np.float32)
-        self._ksize = (2 * math.ceil(2.5 * sigma_px) + 1,) * 2  # the Gaussians cut at 2.5 sigma
-        self._ksize2 = (2 * math.ceil(2.5 * sigma_px * math.sqrt(2.0)) + 1,) * 2
+        self._ksize = (2 * math.ceil(2.5 * sigma_px) + 1,) * 2  # the Gaussian cut at 2.5 sigma
         self.rays = np.zeros((0, 3))
         self.dt = np.zeros(0)
         self._u = self._v = np.zeros(0)
@@ -135,12 +137,17 @@ class RotationContrast:
         _vote(u, v, self.image)
         return self.image
 
+    def warped(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels (u, v) the last `iwe` or call warped the window's `n` events to."""
+        return self._u[:n], self._v[:n]
+
     def __call__(self, omega: np.ndarray) -> tuple[float, np.ndarray]:
-        """Variance of the smoothed IWE at `omega`, and its gradient (3)."""
+        """Variance of the IWE at `omega` smoothed by a Gaussian of sigma / sqrt(2), and its gradient (3).
+        One blur serves both: with S the IWE smoothed by sigma, that variance is <IWE, S> / n_px - mean^2."""
         n = len(self.dt)
         image = self.iwe(omega)
-        blurred = cv2.GaussianBlur(image, self._ksize, self.sigma)
-        twice = cv2.GaussianBlur(image, self._ksize2, self.sigma * math.sqrt(2.0))
+        smooth = cv2.GaussianBlur(image, self._ksize, self.sigma)
         grad = np.empty(3)
-        _gradient(self._u[:n], self._v[:n], self._ju[:n], self._jv[:n], twice, grad)
-        return float(blurred.var(dtype=np.float64)), grad * (2.0 / image.size)
+        _gradient(self._u[:n], self._v[:n], self._ju[:n], self._jv[:n], smooth, grad)
+        mean = float(image.mean())
+        return float(np.dot(image.ravel(), smooth.ravel())) / image.size - mean * mean, grad * (2.0 / image.size)
