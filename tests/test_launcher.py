@@ -181,9 +181,7 @@ def test_a_source_slower_than_real_time_lags_but_stays_alive(tmp_path: Path, rig
     assert stats["messages"] >= 3 and stats["max_gap_s"] < SILENT_S / 2  # Stats kept flowing, once started
     assert report["keys"][f"etam/{rig}/camera/cam0/truth/pose"]["messages"] > 5
     assert "plays slower than real time" in err
-    # the loop closed: the tracker's rotation estimates, and the mapper's mosaic drawn with them
-    assert report["keys"][f"etam/{rig}/tracker/ego/pose"]["messages"] > 20
-    assert report["keys"][f"etam/{rig}/mapper/map/mosaic"]["messages"] >= 1
+    assert report["keys"][f"etam/{rig}/tracker/ego/pose"]["messages"] > 20  # the tracker's rotation estimates
 
 
 def test_up_on_a_spinning_camera_closes_the_loop(monkeypatch) -> None:  # noqa: ANN001

@@ -346,8 +346,15 @@ def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: s
     assert all(p.omega is not None and p.child == "cam0" for p in poses)
     true_t = np.array([p.t for p in true], np.float64)
     slerp = Slerp(true_t, Rotation.from_quat([p.q for p in true]))
-    scored = [p for p in poses if true_t[0] <= p.t <= true_t[-1]]
-    errors = np.degrees([(slerp(p.t).inv() * Rotation.from_quat(p.q)).magnitude() for p in scored])
-    assert len(scored) >= 50 and errors.max() < 3.0
-    speeds = np.degrees([np.linalg.norm(p.omega) for p in scored])
-    assert speeds[-1] > 30  # the camera is turning by then, and the estimate says so
+    scored = [p for p in poses if true_t[0] <= p.t <= true_t[-1]][:50]
+    assert len(scored) == 50
+    # the tracker's world frame is the camera's at the first event it took (it may start late): compare turns
+    # from the first scored pose, over half a second
+    first_true, first = slerp(scored[0].t), Rotation.from_quat(scored[0].q)
+    errors = np.degrees([((first_true.inv() * slerp(p.t)).inv() * (first.inv() * Rotation.from_quat(p.q))).magnitude()
+                         for p in scored])
+    assert errors.max() < 3.0
+    true_omega = {p.t: p.omega for p in true}
+    paired = [(p.omega, true_omega[t]) for p in scored for t in [min(true_omega, key=lambda t: abs(t - p.t))]
+              if abs(t - p.t) <= 10_000 and np.linalg.norm(true_omega[t]) > 0.3]
+    assert paired and np.median([np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in paired]) < 0.1

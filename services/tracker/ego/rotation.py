@@ -117,6 +117,10 @@ class RotationTracker:
         guess = self._predicted(end_us)
         speed_px_s = float(np.linalg.norm(guess)) * self.focal
         window = int(np.clip(1e6 * p.travel_px / max(speed_px_s, 1e-9), p.min_window_us, p.max_window_us))
+        if self._last is None or self._last.state == STILL:
+            # a cold start, maybe on a camera already turning fast: from just off w = 0, where every event sits
+            # on a pixel (a kink of the contrast, whose gradient there can leave L-BFGS where it started)
+            guess = guess + 1e-3
         # no longer than puts its middle after the last estimate's: the poses' times go forward
         longest = p.max_window_us if self._last is None else min(p.max_window_us, 2 * (end_us - self._last.t_us) - 2)
         lo, hi = np.searchsorted(self._t, [end_us - min(window, longest), end_us], side="right")
