@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from services.geometry import unit_rays
 from services.mapper.trajectory import read_tum
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.evaluation import evaluate_odometry
@@ -42,17 +43,12 @@ def star_events(omega: np.ndarray, duration_s: float, seed: int = 0, step_us: in
     return np.concatenate(chunks)
 
 
-def _rays(ev: np.ndarray) -> np.ndarray:
-    rays = np.stack([(ev["x"] - K[0, 2]) / K[0, 0], (ev["y"] - K[1, 2]) / K[1, 1], np.ones(len(ev))], 1)
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
-
-
 def test_contrast_gradient_matches_finite_differences_and_peaks_at_the_true_rate():
     omega = np.array([0.5, -2.0, 1.0])
     ev = star_events(omega, 0.03)
     contrast = RotationContrast(K, W, H)
     mid = ev["t"].mean()
-    contrast.set_events(_rays(ev), (ev["t"] - mid) * 1e-6)
+    contrast.set_events(unit_rays(K, ev["x"], ev["y"]), (ev["t"] - mid) * 1e-6)
     for w in (omega * 0.8, omega + np.array([0.3, 0.2, -0.4])):
         value, grad = contrast(w)
         numeric = [(contrast(w + e * 1e-3)[0] - contrast(w - e * 1e-3)[0]) / 2e-3 for e in np.eye(3)]
@@ -136,13 +132,13 @@ def test_panoramic_map_pulls_a_drifted_orientation_back():
 
     ev = star_events(np.zeros(3), 0.05, share=0.5)
     contrast = RotationContrast(K, W, H)
-    contrast.set_events(_rays(ev), np.zeros(len(ev)))
+    contrast.set_events(unit_rays(K, ev["x"], ev["y"]), np.zeros(len(ev)))
     image = contrast.iwe(np.zeros(3)).copy()
     pano = PanoramaMap(K, W, H)
     truth = Rotation.from_euler("YXZ", [30, -10, 5], degrees=True)
     pano.insert(cv2.GaussianBlur(image, (0, 0), 1.0), truth)
     off = truth * Rotation.from_rotvec(np.radians([0.6, -0.5, 0.6]))
-    rays = pano.rays(ev["x"].astype(np.float64), ev["y"].astype(np.float64))
+    rays = unit_rays(K, ev["x"], ev["y"])
     aligned = pano.align(rays, off)
     assert np.degrees((truth.inv() * off).magnitude()) > 0.9
     assert np.degrees((truth.inv() * aligned).magnitude()) < 0.2

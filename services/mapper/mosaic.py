@@ -21,6 +21,7 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from services.geometry import pixel_rays
 from services.mapper import mosaic_fit
 from services.mapper.poisson import poisson
 from services.mapper.trajectory import Trajectory
@@ -55,9 +56,7 @@ class Mosaic:
         self.params = params or MosaicParams()
         self.sensor = (width, height)
         K = np.asarray(K, np.float64)
-        ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
-        rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1).reshape(-1, 3)
-        self._rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        self._rays = pixel_rays(K, width, height)
         self.reset()
 
     def reset(self) -> None:

@@ -70,16 +70,24 @@ def _warp(rays, dt, omega, fx, fy, cx, cy, u, v, ju, jv):  # noqa: ANN001, ANN20
 
 
 @numba.njit(cache=True, nogil=True)
+def _cell(u, v, w, h):  # noqa: ANN001, ANN202 - numba helper
+    """The top-left pixel (row, column) of the 2 x 2 a sub-pixel point (u, v) falls in, and its offsets there;
+    row -1 where that block is not wholly inside a w x h image."""
+    x0, y0 = math.floor(u), math.floor(v)
+    if x0 < 0 or y0 < 0 or x0 >= w - 1 or y0 >= h - 1:
+        return -1, 0, 0.0, 0.0
+    return int(y0), int(x0), u - x0, v - y0
+
+
+@numba.njit(cache=True, nogil=True)
 def _vote(u, v, image):  # noqa: ANN001, ANN202 - numba kernel
     """Bilinear votes of the warped pixels into `image` (zeroed first)."""
     h, w = image.shape
     image[:] = 0.0
     for k in range(u.shape[0]):
-        x0, y0 = math.floor(u[k]), math.floor(v[k])
-        if x0 < 0 or y0 < 0 or x0 >= w - 1 or y0 >= h - 1:
+        i, j, fx, fy = _cell(u[k], v[k], w, h)
+        if i < 0:
             continue
-        fx, fy = u[k] - x0, v[k] - y0
-        i, j = int(y0), int(x0)
         image[i, j] += (1 - fx) * (1 - fy)
         image[i, j + 1] += fx * (1 - fy)
         image[i + 1, j] += (1 - fx) * fy
@@ -92,11 +100,9 @@ def _gradient(u, v, ju, jv, smooth, out):  # noqa: ANN001, ANN202 - numba kernel
     h, w = smooth.shape
     g0 = g1 = g2 = 0.0
     for k in range(u.shape[0]):
-        x0, y0 = math.floor(u[k]), math.floor(v[k])
-        if x0 < 0 or y0 < 0 or x0 >= w - 1 or y0 >= h - 1:
+        i, j, fx, fy = _cell(u[k], v[k], w, h)
+        if i < 0:
             continue
-        fx, fy = u[k] - x0, v[k] - y0
-        i, j = int(y0), int(x0)
         a, b, c, d = smooth[i, j], smooth[i, j + 1], smooth[i + 1, j], smooth[i + 1, j + 1]
         du = (b - a) * (1 - fy) + (d - c) * fy
         dv = (c - a) * (1 - fx) + (d - b) * fx

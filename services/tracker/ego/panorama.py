@@ -21,6 +21,8 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
+from services.geometry import pixel_rays
+
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _landing(d, width, height):  # noqa: ANN001, ANN202 - numba helper
@@ -36,6 +38,21 @@ def _landing(d, width, height):  # noqa: ANN001, ANN202 - numba helper
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
+def _turned_cell(R, ray, d, width, height):  # noqa: ANN001, ANN202 - numba helper
+    """Where a camera ray turned by R into the world (written into `d`) lands on the panorama: the rows and
+    columns of its 2 x 2 block (the longitude wraps), its offsets there, and du/dd, dv/dd; row -1 off the
+    poles' edge rows."""
+    for i in range(3):
+        d[i] = R[i, 0] * ray[0] + R[i, 1] * ray[1] + R[i, 2] * ray[2]
+    u, v, du, dv = _landing(d, width, height)
+    x0, y0 = math.floor(u), math.floor(v)
+    if y0 < 0 or y0 >= height - 1:
+        return -1, 0, 0, 0.0, 0.0, du, dv
+    j0 = int(x0) % width
+    return int(y0), j0, (j0 + 1) % width, u - x0, v - y0, du, dv
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _score(rays, R, image, grad):  # noqa: ANN001, ANN202 - numba kernel
     """Sum of the map's bilinear value where rays (N x 3, camera frame) land turned by R, and its gradient
     (into `grad`) for R exp([delta]x) at delta = 0: dd/ddelta = -R [r]x."""
@@ -45,15 +62,9 @@ def _score(rays, R, image, grad):  # noqa: ANN001, ANN202 - numba kernel
     d = np.empty(3)
     for k in range(rays.shape[0]):
         rx, ry, rz = rays[k, 0], rays[k, 1], rays[k, 2]
-        for i in range(3):
-            d[i] = R[i, 0] * rx + R[i, 1] * ry + R[i, 2] * rz
-        u, v, du, dv = _landing(d, w, h)
-        x0, y0 = math.floor(u), math.floor(v)
-        if y0 < 0 or y0 >= h - 1:
+        i0, j0, j1, fx, fy, du, dv = _turned_cell(R, rays[k], d, w, h)
+        if i0 < 0:
             continue
-        fx, fy = u - x0, v - y0
-        i0, j0 = int(y0), int(x0) % w
-        j1 = (j0 + 1) % w
         a, b, c, e = image[i0, j0], image[i0, j1], image[i0 + 1, j0], image[i0 + 1, j1]
         total += (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + e * fx) * fy
         gu = (b - a) * (1 - fy) + (e - c) * fy
@@ -80,15 +91,9 @@ def _splat(rays, values, R, total, weight):  # noqa: ANN001, ANN202 - numba kern
     h, w = total.shape
     d = np.empty(3)
     for k in range(rays.shape[0]):
-        for i in range(3):
-            d[i] = R[i, 0] * rays[k, 0] + R[i, 1] * rays[k, 1] + R[i, 2] * rays[k, 2]
-        u, v, _, _ = _landing(d, w, h)
-        x0, y0 = math.floor(u), math.floor(v)
-        if y0 < 0 or y0 >= h - 1:
+        i0, j0, j1, fx, fy, _, _ = _turned_cell(R, rays[k], d, w, h)
+        if i0 < 0:
             continue
-        fx, fy = u - x0, v - y0
-        i0, j0 = int(y0), int(x0) % w
-        j1 = (j0 + 1) % w
         for i, j, wt in ((i0, j0, (1 - fx) * (1 - fy)), (i0, j1, fx * (1 - fy)), (i0 + 1, j0, (1 - fx) * fy),
                          (i0 + 1, j1, fx * fy)):
             total[i, j] += wt * values[k]
@@ -104,21 +109,13 @@ class PanoramaMap:
         # windows are added at half the sensor's resolution: its pixels are then about the map's (0.35 deg at the
         # default size for a 58 deg field of view), and splatting them costs a quarter
         self._half = (width // 2, height // 2)
-        ys, xs = np.mgrid[0:self._half[1], 0:self._half[0]].astype(np.float64) * 2 + 0.5
-        rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1).reshape(-1, 3)
-        self._pixel_rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-        self.K = K
+        self._pixel_rays = pixel_rays(K, width, height, step=2)
         self._total = np.zeros(size[::-1], np.float32)
         self._weight = np.zeros(size[::-1], np.float32)
         self.image = np.zeros(size[::-1], np.float32)  # the smoothed average the windows are aligned to
         self.sigma = sigma_px
         self.max_step = math.radians(max_step_deg)
         self.windows = 0
-
-    def rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Unit camera rays (N x 3) of (warped, sub-pixel) pixels."""
-        rays = np.stack([(u - self.K[0, 2]) / self.K[0, 0], (v - self.K[1, 2]) / self.K[1, 1], np.ones(len(u))], 1)
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     def insert(self, edges: np.ndarray, orientation: Rotation) -> None:
         """Averages a window's image of warped events (H x W, at its middle time) into the map, seen with

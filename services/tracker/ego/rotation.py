@@ -20,6 +20,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
+from services.geometry import pixel_rays, unit_rays
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.panorama import PanoramaMap
 
@@ -66,10 +67,8 @@ class RotationTracker:
     def __init__(self, K: np.ndarray, width: int, height: int, params: RotationParams | None = None) -> None:
         self.params = params or RotationParams()
         K = np.asarray(K, np.float64)
-        self.focal = float(K[0, 0])
-        ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
-        rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1).reshape(-1, 3)
-        self._rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        self.K, self.focal = K, float(K[0, 0])
+        self._rays = pixel_rays(K, width, height)
         self.width = width
         self.contrast = RotationContrast(K, width, height, self.params.sigma_px)
         self.map = PanoramaMap(K, width, height, sigma_px=self.params.sigma_px) if self.params.panorama else None
@@ -77,7 +76,6 @@ class RotationTracker:
         self._pix = np.zeros(0, np.int64)
         self._next_us: int | None = None
         self._start_us = 0
-        self.evaluations = 0
         self._windows = 0
         self.orientation = Rotation.identity()
         self._last: RotationEstimate | None = None
@@ -137,7 +135,6 @@ class RotationTracker:
         scale = self.contrast(np.zeros(3))[0] or 1.0
         result = minimize(lambda w: self._negative(w, scale), guess, jac=True, method="L-BFGS-B",
                           options={"maxiter": p.iterations, "maxls": 6})
-        self.evaluations += result.nfev
         omega = np.asarray(result.x, np.float64)
         est = self._integrate(RotationEstimate(mid, np.zeros(4), omega, TRACKING, n, int(t[-1] - t[0]),
                                                float(-result.fun)))
@@ -154,7 +151,7 @@ class RotationTracker:
         u, v = self.contrast.warped(n)
         inside = np.flatnonzero((u >= 0) & (u < image.shape[1] - 1) & (v >= 0) & (v < image.shape[0] - 1))
         pick = inside[::max(1, math.ceil(len(inside) / p.align_events))]
-        aligned = self.map.align(self.map.rays(u[pick], v[pick]), self.orientation)
+        aligned = self.map.align(unit_rays(self.K, u[pick], v[pick]), self.orientation)
         step = (self.orientation.inv() * aligned).as_rotvec()
         self.orientation = self.orientation * Rotation.from_rotvec(p.map_gain * step)
         est.quat = self.orientation.as_quat()
