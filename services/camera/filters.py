@@ -190,9 +190,16 @@ class Undistort:
     def of(cls, rec: Recording) -> Undistort | None:
         """The undistortion of a recording's calibration; None where it has no distortion to undo."""
         cal = rec.calibration
-        if cal is None or cal.dist_model == "none" or not np.any(cal.dist):
+        return None if cal is None else cls.needed(rec.width, rec.height, rec.K_or_default(), cal.dist_model,
+                                                    cal.dist)
+
+    @classmethod
+    def needed(cls, width: int, height: int, K: np.ndarray, dist_model: str,
+               dist: np.ndarray | None) -> Undistort | None:
+        """The undistortion of a camera's calibration (a file's, a CameraInfo's); None where there is none to undo."""
+        if dist_model == "none" or dist is None or not np.any(dist):
             return None
-        return cls(rec.width, rec.height, rec.K_or_default(), cal.dist_model, cal.dist)
+        return cls(width, height, K, dist_model, dist)
 
     def __call__(self, events: np.ndarray) -> np.ndarray:
         events = _inside(events, self.width, self.height)

@@ -9,7 +9,8 @@ configured object width and the camera's intrinsics (Z = fx * size / pixels).
 The ego-motion follows one camera (the first to send events, or `cam` where it names one) on a
 subscription of its own, in a worker thread (its kernels release the GIL), so a slow estimate delays
 neither the object tracks nor the service's commands; it starts once that camera's intrinsics are
-known, and starts again (a new world frame) where the camera's time goes back.
+known (its events undistorted by them, as `etam odom` does a file's), and starts again (a new world
+frame) where the camera's time goes back.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services import keys
+from services.camera.filters import Undistort
 from services.messages import (CameraInfo, Command, EventPacket, Image, MessageError, Pose, Reply, Tracks,
                                image_to_array)
 from services.runtime import Service, ServiceOptions
@@ -102,7 +104,7 @@ class TrackerService(Service):
         """Rotation estimates of the first camera that sends events (one, even where `cam` matches several:
         a rig turns as one), published as Poses on ``tracker/ego/pose``."""
         out = self.publisher(keys.key(self.rig, "tracker", "ego", "pose"))
-        followed, last_us, waiting = "", -1, False
+        followed, last_us, waiting, undistort = "", -1, False, None
         async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo",
                                              maxsize=1024):
             assert isinstance(msg, EventPacket)
@@ -119,8 +121,10 @@ class TrackerService(Service):
             if self.rotation is None or msg.stamp < last_us:
                 log.info("ego-motion (rotation) of %s from %d us on", cam, msg.stamp)
                 self.rotation = RotationTracker(info.K, info.width, info.height, RotationParams())
+                undistort = Undistort.needed(info.width, info.height, info.K, info.dist_model, info.dist)
             last_us = msg.stamp
-            for est in await asyncio.to_thread(self.rotation.add, msg.events):
+            events = undistort(msg.events) if undistort is not None else msg.events
+            for est in await asyncio.to_thread(self.rotation.add, events):
                 out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.zeros(3), q=est.quat, child=cam, omega=est.omega))
 
     async def _track(self) -> None:
