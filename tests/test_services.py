@@ -336,13 +336,12 @@ def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: s
     from services.messages import Pose
 
     common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
-    # the tracker first, so that it follows the camera from its start (a tracker that joins a camera already
-    # turning fast can stay at w = 0 on a clean clone: a known fault of the cold start, not tested here)
-    with spawn("tracker", "--ego", "rotation", *common), client_session(router) as s:
-        wait_alive(s, rig, 1)
-        with spawn("camera", "--source", "sim:rotation", *common):
+    # the camera first: the tracker joins a camera already turning (a cold start on a fast turn)
+    with spawn("camera", "--source", "sim:rotation", *common), client_session(router) as s:
+        truth = Collector(s, f"etam/{rig}/camera/cam0/truth/pose")
+        wait_for(lambda: len(truth.of(Pose)) >= 25 or None, 60, "the camera's first half second")
+        with spawn("tracker", "--ego", "rotation", *common):
             ego = Collector(s, f"etam/{rig}/tracker/ego/pose")
-            truth = Collector(s, f"etam/{rig}/camera/cam0/truth/pose")
             poses = wait_for(lambda: ego.of(Pose) if len(ego.of(Pose)) >= 100 else None, 120, "100 ego poses")
             true = truth.of(Pose)
     times = [p.t for p in poses]

@@ -39,6 +39,12 @@ class RotationParams:
     max_events: int = 10_000  # more are thinned evenly (20 000: 0.8 % rms of the peak speed, not 1.1 %, at 2x the cost)
     sigma_px: float = 1.0  # the Gaussian the image of warped events is smoothed by (see `RotationContrast`)
     iterations: int = 6  # L-BFGS iterations at most per window (from the warm start: 20 gained nothing)
+    # a cold start (the first window, or after a still spell) assumes this speed for its first window's length,
+    # and starts from the best of these rates about each axis
+    cold_speed_deg_s: float = 1000.0
+    cold_starts_deg_s: tuple[float, ...] = (150.0, 400.0, 800.0)
+    cold_sigma_px: float = 3.0  # the blur of its first round (star fields at 300-700 deg/s: 1 px stayed at 0, 3 px
+    cold_iterations: int = 20  # converged in 10-16 iterations)
     # tracking against the panoramic map of the events (`panorama.py`): every estimate's orientation is
     # aligned to it with this many of its warped events at most, and turned by `map_gain` of the alignment's
     # step (seed 1, 10 s: 1 gave 0.59 deg RMS and jumps that doubled the rate error read from the poses, 1.9 %
@@ -71,6 +77,9 @@ class RotationTracker:
         self._rays = pixel_rays(K, width, height)
         self.width = width
         self.contrast = RotationContrast(K, width, height, self.params.sigma_px)
+        self._coarse = RotationContrast(K, width, height, self.params.cold_sigma_px)
+        turns = np.radians(self.params.cold_starts_deg_s)[:, None, None] * np.concatenate([np.eye(3), -np.eye(3)])
+        self._cold_starts = np.vstack([np.full((1, 3), 1e-3), turns.reshape(-1, 3)])
         self.map = PanoramaMap(K, width, height, sigma_px=self.params.sigma_px) if self.params.panorama else None
         self._t = np.zeros(0, np.int64)  # events kept for the next windows
         self._pix = np.zeros(0, np.int64)
@@ -112,35 +121,71 @@ class RotationTracker:
 
     def _estimate(self, end_us: int) -> RotationEstimate:
         p = self.params
-        guess = self._predicted(end_us)
-        speed_px_s = float(np.linalg.norm(guess)) * self.focal
-        window = int(np.clip(1e6 * p.travel_px / max(speed_px_s, 1e-9), p.min_window_us, p.max_window_us))
-        if self._last is None or self._last.state == STILL:
-            # a cold start, maybe on a camera already turning fast: from just off w = 0, where every event sits
-            # on a pixel (a kink of the contrast, whose gradient there can leave L-BFGS where it started)
-            guess = guess + 1e-3
         # no longer than puts its middle after the last estimate's: the poses' times go forward
         longest = p.max_window_us if self._last is None else min(p.max_window_us, 2 * (end_us - self._last.t_us) - 2)
-        lo, hi = np.searchsorted(self._t, [end_us - min(window, longest), end_us], side="right")
-        if hi - lo < p.min_events:  # too few in the window the motion asks for: take the latest min_events
-            lo = max(hi - p.min_events, int(np.searchsorted(self._t, end_us - longest, side="right")))
-        n = hi - lo
-        if n < p.min_events:
-            return self._integrate(RotationEstimate(end_us - window // 2, np.zeros(4), np.zeros(3), STILL, n,
-                                                    window, 1.0))
-        idx = np.arange(lo, hi, max(1, math.ceil(n / p.max_events)))
-        t = self._t[idx]
-        mid = (int(t[0]) + int(t[-1])) // 2
-        self.contrast.set_events(self._rays[self._pix[idx]], (t - mid) * 1e-6)
-        scale = self.contrast(np.zeros(3))[0] or 1.0
-        result = minimize(lambda w: self._negative(w, scale), guess, jac=True, method="L-BFGS-B",
-                          options={"maxiter": p.iterations, "maxls": 6})
-        omega = np.asarray(result.x, np.float64)
-        est = self._integrate(RotationEstimate(mid, np.zeros(4), omega, TRACKING, n, int(t[-1] - t[0]),
-                                               float(-result.fun)))
+        if self._last is None or self._last.state == STILL:
+            # a cold start, maybe on a camera already turning fast: near w = 0 the contrast of sharp events has
+            # no slope toward a fast turn's rate (and a kink at 0, where events sit on whole pixels), so the
+            # first round blurs them by `cold_sigma_px`, in a window as long as the fastest turn asks for, from
+            # the best of a few rates (still, or turning about one axis); the second refines that rate as any
+            # warm start is
+            solved = self._solve(end_us, self._window_us(p.cold_speed_deg_s), longest, self._cold_starts,
+                                 self._coarse, p.cold_iterations)
+            if solved is not None:
+                guess = solved[0]
+                solved = self._solve(end_us, self._window_us(np.degrees(np.linalg.norm(guess))), longest, guess)
+        else:
+            guess = self._predicted(end_us)
+            solved = self._solve(end_us, self._window_us(np.degrees(np.linalg.norm(guess))), longest, guess)
+        if solved is None:
+            lo, hi = np.searchsorted(self._t, [end_us - longest, end_us], side="right")
+            n = int(hi - lo)
+            return self._integrate(RotationEstimate(end_us - longest // 2, np.zeros(4), np.zeros(3), STILL, n,
+                                                    longest, 1.0))
+        omega, gain, n, t = solved
+        est = self._integrate(RotationEstimate((int(t[0]) + int(t[-1])) // 2, np.zeros(4), omega, TRACKING, n,
+                                               int(t[-1] - t[0]), gain))
         if self.map is not None:
             self._track_map(est)
         return est
+
+    def _window_us(self, speed_deg_s: float) -> int:
+        """The window in which a turn at this speed sweeps `travel_px` across the image, within the limits."""
+        p = self.params
+        speed_px_s = np.radians(speed_deg_s) * self.focal
+        return int(np.clip(1e6 * p.travel_px / max(speed_px_s, 1e-9), p.min_window_us, p.max_window_us))
+
+    def _solve(self, end_us: int, window: int, longest: int, guess: np.ndarray,
+               contrast: RotationContrast | None = None,
+               iterations: int | None = None) -> tuple[np.ndarray, float, int, np.ndarray] | None:
+        """The angular velocity that maximises the contrast of the window ending at `end_us` (at most
+        `longest`; widened to the latest `min_events` where it holds fewer), from `guess`: with the contrast
+        gain, the window's event count and its (thinned) times; None where even the longest holds too few.
+        The contrast is `self.contrast`'s unless `contrast` is given (the cold start's blurred one); a guess
+        of several rows starts from the one of highest contrast."""
+        p = self.params
+        contrast = contrast or self.contrast
+        lo, hi = np.searchsorted(self._t, [end_us - min(window, longest), end_us], side="right")
+        if hi - lo < p.min_events:  # too few in the window the motion asks for: take the latest min_events
+            lo = max(hi - p.min_events, int(np.searchsorted(self._t, end_us - longest, side="right")))
+        n = int(hi - lo)
+        if n < p.min_events:
+            return None
+        idx = np.arange(lo, hi, max(1, math.ceil(n / p.max_events)))
+        t = self._t[idx]
+        mid = (int(t[0]) + int(t[-1])) // 2
+        contrast.set_events(self._rays[self._pix[idx]], (t - mid) * 1e-6)
+        scale = contrast(np.zeros(3))[0] or 1.0
+        if guess.ndim == 2:
+            guess = guess[int(np.argmax([contrast(g)[0] for g in guess]))]
+
+        def negative(omega: np.ndarray) -> tuple[float, np.ndarray]:
+            value, grad = contrast(omega)
+            return -value / scale, -grad / scale
+
+        result = minimize(negative, guess, jac=True, method="L-BFGS-B",
+                          options={"maxiter": iterations or p.iterations, "maxls": 6})
+        return np.asarray(result.x, np.float64), float(-result.fun), n, t
 
     def _track_map(self, est: RotationEstimate) -> None:
         """The estimate's orientation aligned to the panoramic map by its warped events; every `map_every`th
@@ -158,10 +203,6 @@ class RotationTracker:
         if self.map.windows == 0 or self._windows % p.map_every == 0:
             self.map.insert(cv2.GaussianBlur(image, (0, 0), p.sigma_px), self.orientation)
         self._windows += 1
-
-    def _negative(self, omega: np.ndarray, scale: float) -> tuple[float, np.ndarray]:
-        value, grad = self.contrast(omega)
-        return -value / scale, -grad / scale
 
     def _integrate(self, est: RotationEstimate) -> RotationEstimate:
         """The orientation at the estimate's time: the last one turned by the mean of the two angular
