@@ -125,13 +125,15 @@ def _poll_mapper(session, cmd_key: str, duration_s: float) -> list[dict]:  # noq
 
 
 def per_seed(stage: str, scene: str, seeds: tuple[int, ...], duration_s: float,
-             score: Callable[[Path, int], dict], figures: tuple[str, ...], folder: Path) -> list[dict]:
-    """A row per seed: `scene` simulated for `duration_s` into `folder`, then `score`d (its `figures`, and
-    its keyframes where it gives them); and, for several seeds, a row of their means."""
+             score: Callable[[Path, int], dict], figures: tuple[str, ...], folder: Path,
+             scene_args: dict[int, dict[str, float]] | None = None) -> list[dict]:
+    """A row per seed: `scene` simulated for `duration_s` into `folder` (with that seed's `scene_args`),
+    then `score`d (its `figures`, and its keyframes where it gives them); and, for several seeds, a row of
+    their means."""
     rows = []
     for seed in seeds:
         h5 = folder / f"{scene}{seed}.h5"
-        simulate(scene, h5, duration_s, seed=seed, progress=False)
+        simulate(scene, h5, duration_s, seed=seed, progress=False, scene_args=(scene_args or {}).get(seed))
         scores = score(h5, seed)
         rows.append({"stage": stage, "scene": scene, "seed": seed, "duration_s": duration_s,
                      **{k: scores[k] for k in ("keyframes", *figures) if k in scores}})

@@ -244,7 +244,14 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from services.camera.simulator import SimParams
 
     params = SimParams.parse(args.sim_param or [])
-    summary = simulate(args.scene, _output(args.out), args.duration, args.seed, progress=not args.json, params=params)
+    scene_args = None
+    if args.peak is not None:
+        if args.scene != "rotation" or args.peak <= 0:
+            raise config.ConfigError(f"--peak (deg/s, > 0) sets the rotation scene's peak speed, got {args.peak} "
+                                     f"for scene {args.scene}")
+        scene_args = {"peak_deg_s": args.peak}
+    summary = simulate(args.scene, _output(args.out), args.duration, args.seed, progress=not args.json, params=params,
+                       scene_args=scene_args)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
           f"({args.duration} s, seed {args.seed}), {summary['truth_boxes']} truth boxes and "
           f"{summary['truth_poses']} truth poses to {args.out}")
@@ -528,6 +535,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
+    p.add_argument("--peak", type=float, metavar="DEG_S", help="rotation only: the motion scaled to peak at this "
+                                                               "angular speed (default: 616 deg/s)")
     p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
     p.set_defaults(func=_cmd_sim)
 

@@ -331,6 +331,19 @@ def test_sim_rotation_writes_events_poses_omega_and_panorama(tmp_path: Path) -> 
     assert rate_late > 3 * rate_early  # the camera speeds up: more events
 
 
+def test_sim_rotation_peak_scales_the_motion_and_is_checked(tmp_path: Path) -> None:
+    from services.camera.rotation_scene import RotationScene
+
+    assert np.degrees(RotationScene(seed=3).peak_speed()) == pytest.approx(616, abs=1)  # the default motion
+    scene = RotationScene(seed=3, peak_deg_s=1000)
+    speeds = [np.linalg.norm(scene.omega(t)) for t in np.linspace(0, scene.period_us, 2001)]
+    assert np.degrees(max(speeds)) == pytest.approx(1000, rel=0.01)
+    run = subprocess.run(etam_argv("sim", "6dof", "--peak", "900", "--out", str(tmp_path / "x.h5")),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0 and "--peak" in run.stderr and "rotation" in run.stderr
+    assert "Traceback" not in run.stderr and not (tmp_path / "x.h5").exists()
+
+
 def test_live_rotation_source_publishes_truth_poses(router: str, rig: str) -> None:
     from services.messages import Pose, decode
     from tests.conftest import spawn, wait_for

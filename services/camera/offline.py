@@ -18,10 +18,10 @@ STEP_US = 100_000
 
 
 def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: bool = True,
-             params: SimParams | None = None) -> dict[str, Any]:
-    """Simulate `scene` for `duration_s` into an ETAM HDF5 file with its ground truth (a rig's
-    further cameras in groups `/cam1`, ...)."""
-    sources = open_sources(f"sim:{scene}", seed=seed, sim_params=params)
+             params: SimParams | None = None, scene_args: dict[str, float] | None = None) -> dict[str, Any]:
+    """Simulate `scene` (its constructor given `scene_args`) for `duration_s` into an ETAM HDF5 file
+    with its ground truth (a rig's further cameras in groups `/cam1`, ...)."""
+    sources = open_sources(f"sim:{scene}", seed=seed, sim_params=params, scene_args=scene_args)
     end_us = int(duration_s * 1e6)
     totals = {"events": 0, "truth_boxes": 0, "truth_poses": 0}
     first = sources[0]

@@ -18,7 +18,10 @@ class RotationScene:
     """Renders log intensity for the camera orientation at any time; see the module docstring."""
 
     def __init__(self, width: int = 346, height: int = 260, seed: int = 0, max_omega_deg_s: float = 800.0,
-                 period_s: float = 8.0, panorama_size: tuple[int, int] = (2048, 1024)) -> None:
+                 period_s: float = 8.0, panorama_size: tuple[int, int] = (2048, 1024),
+                 peak_deg_s: float | None = None) -> None:
+        """Each angular rate is bounded by `max_omega_deg_s` (the sequence then peaks at 616 deg/s), or,
+        with `peak_deg_s`, the whole motion is scaled so that the speed peaks at that."""
         self.width, self.height = width, height
         rng = np.random.default_rng(seed)
         self.focal_px = 0.9 * width
@@ -36,15 +39,27 @@ class RotationScene:
         # amplitude x frequency bounds each angular rate; phases 0 start every rate at zero
         self._terms = [(0.7 * peak / w, w, 0.0), (0.3 * peak / (3 * w), 3 * w, 0.0)], \
                       [(0.12 * peak / (2 * w), 2 * w, 0.0)], [(0.08 * peak / (5 * w), 5 * w, 0.0)]
+        if peak_deg_s is not None:
+            for _ in range(4):  # the speed is nearly linear in the amplitudes: a few rescalings converge
+                gain = np.deg2rad(peak_deg_s) / self.peak_speed()
+                self._terms = tuple([(a * gain, w, ph) for a, w, ph in terms] for terms in self._terms)
         ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
         rays = np.stack([(xs - width / 2) / self.focal_px, (ys - height / 2) / self.focal_px, np.ones_like(xs)], -1)
         self._rays = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
         self._reach_px = self.focal_px + np.hypot(width, height) / 2
 
-    def _angles(self, t_us: float) -> np.ndarray:
-        """Yaw, pitch, roll: each a sum of a (1 - cos(w t + ph)) terms, so the camera starts slowly."""
-        t = (t_us % self.period_us) / 1e6
-        return np.array([sum(a * (np.cos(ph) - np.cos(w * t + ph)) for a, w, ph in terms) for terms in self._terms])
+    def _angles(self, t_us: float | np.ndarray) -> np.ndarray:
+        """Yaw, pitch, roll (3, or N x 3 for N times): each a sum of a (1 - cos(w t + ph)) terms, so the
+        camera starts slowly."""
+        t = (np.asarray(t_us, np.float64) % self.period_us) / 1e6
+        return np.stack([sum(a * (np.cos(ph) - np.cos(w * t + ph)) for a, w, ph in terms) for terms in self._terms],
+                        axis=-1)
+
+    def peak_speed(self, samples: int = 8000) -> float:
+        """The highest angular speed (rad/s) over a period."""
+        t, h = np.linspace(0, self.period_us, samples, endpoint=False), 50.0
+        before, after = (Rotation.from_euler("YXZ", self._angles(t + d)) for d in (-h, h))
+        return float(np.linalg.norm((before.inv() * after).as_rotvec(), axis=1).max() / (2 * h * 1e-6))
 
     def rotation(self, t_us: float) -> Rotation:
         """R_world_cam: yaw about y (down), then pitch about x, then roll about z."""

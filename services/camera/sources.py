@@ -261,20 +261,21 @@ SIM_SCENES = ("objects", "rotation", "6dof", "stereo")
 STEREO_BASELINE_M = 0.1  # the simulated stereo rig's baseline, along the left camera's x axis
 
 
-def open_sources(spec: str, seed: int = 0, loop: bool = False,
-                 sim_params: SimParams | None = None) -> list[EventSource]:
+def open_sources(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None,
+                 scene_args: dict[str, float] | None = None) -> list[EventSource]:
     """Open the cameras of a source from its command-line name (``sim:objects``, ``sim:stereo``, the
-    path of a recording): one source, or one per camera of a rig, the first first."""
+    path of a recording): one source, or one per camera of a rig, the first first. `scene_args` go to a
+    simulated scene's constructor (such as `peak_deg_s` of the rotation scene)."""
     if spec.startswith("sim:"):
         scene = spec[4:]
         if scene == "stereo":
-            rig = [SixDofScene(seed=seed, baseline_m=b) for b in (0.0, STEREO_BASELINE_M)]
+            rig = [SixDofScene(seed=seed, baseline_m=b, **(scene_args or {})) for b in (0.0, STEREO_BASELINE_M)]
             return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed + i), spec) for i, sc in enumerate(rig)]
         scenes = {"objects": ObjectsScene, "rotation": RotationScene, "6dof": SixDofScene}
         if scene not in scenes:
             raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                               f"{', '.join('sim:' + s for s in SIM_SCENES)})")
-        sc = scenes[scene](seed=seed)
+        sc = scenes[scene](seed=seed, **(scene_args or {}))
         return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)]
     if spec == "usb" or spec.startswith("usb:"):
         raise SourceError(f"source {spec!r}: USB cameras are not supported yet")
