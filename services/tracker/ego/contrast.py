@@ -112,6 +112,18 @@ def _gradient(u, v, ju, jv, smooth, out):  # noqa: ANN001, ANN202 - numba kernel
     out[0], out[1], out[2] = g0, g1, g2
 
 
+@numba.njit(cache=True, nogil=True)
+def _moments(image, smooth):  # noqa: ANN001, ANN202 - numba kernel
+    """sum(image * smooth) and sum(image), in one pass on one thread (numpy's dot would call a BLAS that
+    may wake threads for it)."""
+    inner = total = 0.0
+    for i in range(image.shape[0]):
+        for j in range(image.shape[1]):
+            inner += image[i, j] * smooth[i, j]
+            total += image[i, j]
+    return inner, total
+
+
 class RotationContrast:
     """The IWE variance of one window of events (unit rays and times relative to the reference time)
     as a function of the angular velocity, with its gradient; buffers are reused across windows."""
@@ -155,5 +167,6 @@ class RotationContrast:
         smooth = cv2.GaussianBlur(image, self._ksize, self.sigma)
         grad = np.empty(3)
         _gradient(self._u[:n], self._v[:n], self._ju[:n], self._jv[:n], smooth, grad)
-        mean = float(image.mean())
-        return float(np.dot(image.ravel(), smooth.ravel())) / image.size - mean * mean, grad * (2.0 / image.size)
+        inner, total = _moments(image, smooth)
+        mean = total / image.size
+        return inner / image.size - mean * mean, grad * (2.0 / image.size)
