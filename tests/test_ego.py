@@ -15,7 +15,7 @@ from services.geometry import unit_rays
 from services.mapper.trajectory import read_tum
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.evaluation import evaluate_odometry
-from services.tracker.ego.rotation import STILL, TRACKING, RotationParams, RotationTracker
+from services.tracker.ego.rotation import LOST, STILL, TRACKING, RotationParams, RotationTracker
 from tests.conftest import etam_argv
 
 W, H = 240, 180
@@ -81,6 +81,23 @@ def test_a_tracker_joining_a_fast_turn_finds_its_rate_at_once(omega):
     estimates = [e for k in range(0, len(ev), 5000) for e in tracker.add(ev[k:k + 5000])]
     errors = [np.linalg.norm(e.omega - omega) / np.linalg.norm(omega) for e in estimates]
     assert len(errors) >= 4 and max(errors) < 0.02, errors
+
+
+def test_noise_is_lost_not_a_rate_and_a_turn_after_it_is_found_again():
+    """Uniform noise at 1 Mev/s (no motion explains it): every window is LOST with w = 0, none TRACKING
+    at a made-up rate (without the state it reported 800-1100 deg/s); a turn that follows is tracked."""
+    rng = np.random.default_rng(0)
+    noise = np.zeros(200_000, [("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    noise["t"], noise["x"], noise["y"] = np.sort(rng.integers(0, 200_000, len(noise))), \
+        rng.integers(0, W, len(noise)), rng.integers(0, H, len(noise))
+    omega = np.array([0.5, -5.0, 2.0])
+    turn = star_events(omega, 0.1)
+    turn["t"] += 200_000
+    tracker = RotationTracker(K, W, H)
+    lost = tracker.add(noise)
+    assert len(lost) >= 15 and all(e.state == LOST and not e.omega.any() for e in lost)
+    found = [e for k in range(0, len(turn), 5000) for e in tracker.add(turn[k:k + 5000])]
+    assert found[-1].state == TRACKING and np.linalg.norm(found[-1].omega - omega) < 0.02 * np.linalg.norm(omega)
 
 
 def test_a_still_scene_is_a_still_camera():

@@ -15,7 +15,7 @@ from services.camera.formats import FormatError, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.mapper.trajectory import read_tum, write_tum
 from services.tracker.ego.evaluation import evaluate_odometry
-from services.tracker.ego.rotation import STILL, RotationParams, RotationTracker
+from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
@@ -58,22 +58,25 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
 
 def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True) -> dict[str, Any]:
     """Run the rotation tracker over a recording's first camera (undistorted where calibrated so) and write
-    its poses (T_world_cam, the world frame being the camera's at the first event) as a TUM file."""
+    its poses (T_world_cam, the world frame being the camera's at the first event) as a TUM file; lost
+    windows (see `rotation.LOST`) give none, and are counted."""
     rows = []
     with open_recording(src) as rec:
         tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         undistort = Undistort.of(rec)
-        n_events = still = 0
+        n_events = still = lost = 0
         with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
             for chunk in rec.chunks():
                 n_events += len(chunk)
                 bar.update(len(chunk))
                 for est in tracker.add(undistort(chunk) if undistort is not None else chunk):
-                    rows.append([est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
-                    still += est.state == STILL
+                    lost += est.state == LOST
+                    if est.state != LOST:
+                        rows.append([est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
+                        still += est.state == STILL
     write_tum(str(out), np.asarray(rows).reshape(-1, 8))
     return {"input": str(src), "output": str(out), "mode": "rotation", "events": n_events, "poses": len(rows),
-            "still": still, "rate_hz": 1e6 / tracker.params.step_us}
+            "still": still, "lost": lost, "rate_hz": 1e6 / tracker.params.step_us}
 
 
 def eval_odometry(pred: Path, truth: Path, align: str = "auto") -> dict[str, Any]:

@@ -24,7 +24,10 @@ from services.geometry import pixel_rays, unit_rays
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.panorama import PanoramaMap
 
-TRACKING, STILL = 0, 1  # the state of an estimate: from a window's contrast, or too few events to move
+# the state of an estimate: from a window's contrast; too few events to move; or lost: the best rate found
+# leaves the events no sharper than not turning at all (noise, flicker, a scene of independently moving
+# things), so it means nothing. A still or lost estimate says w = 0, and the next window starts cold
+TRACKING, STILL, LOST = 0, 1, 2
 
 
 @dataclass
@@ -45,6 +48,11 @@ class RotationParams:
     cold_starts_deg_s: tuple[float, ...] = (150.0, 400.0, 800.0)
     cold_sigma_px: float = 3.0  # the blur of its first round (star fields at 300-700 deg/s: 1 px stayed at 0, 3 px
     cold_iterations: int = 20  # converged in 10-16 iterations)
+    # a window whose best rate's contrast is under this many times that of w = 0 is lost. Uniform noise at
+    # 1 Mev/s: 0.73-0.78. Tracking (dev seeds 1 and 2 at 616 and 1000 deg/s peaks): 1 % of windows under 1.3,
+    # the least 0.93 and 0.89, nearly still where the motion turns back (at 1.0, four such windows were lost
+    # on seed 1 and the cold starts after them erred by up to 88 deg/s)
+    min_gain: float = 0.85
     # tracking against the panoramic map of the events (`panorama.py`): every estimate's orientation is
     # aligned to it with this many of its warped events at most, and turned by `map_gain` of the alignment's
     # step (seed 1, 10 s: 1 gave 0.59 deg RMS and jumps that doubled the rate error read from the poses, 1.9 %
@@ -123,7 +131,7 @@ class RotationTracker:
         p = self.params
         # no longer than puts its middle after the last estimate's: the poses' times go forward
         longest = p.max_window_us if self._last is None else min(p.max_window_us, 2 * (end_us - self._last.t_us) - 2)
-        if self._last is None or self._last.state == STILL:
+        if self._last is None or self._last.state != TRACKING:
             # a cold start, maybe on a camera already turning fast: near w = 0 the contrast of sharp events has
             # no slope toward a fast turn's rate (and a kink at 0, where events sit on whole pixels), so the
             # first round blurs them by `cold_sigma_px`, in a window as long as the fastest turn asks for, from
@@ -143,9 +151,11 @@ class RotationTracker:
             return self._integrate(RotationEstimate(end_us - longest // 2, np.zeros(4), np.zeros(3), STILL, n,
                                                     longest, 1.0))
         omega, gain, n, t = solved
-        est = self._integrate(RotationEstimate((int(t[0]) + int(t[-1])) // 2, np.zeros(4), omega, TRACKING, n,
+        state = TRACKING if gain >= p.min_gain else LOST
+        est = self._integrate(RotationEstimate((int(t[0]) + int(t[-1])) // 2, np.zeros(4),
+                                               omega if state == TRACKING else np.zeros(3), state, n,
                                                int(t[-1] - t[0]), gain))
-        if self.map is not None:
+        if self.map is not None and state == TRACKING:
             self._track_map(est)
         return est
 
