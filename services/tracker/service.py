@@ -27,7 +27,7 @@ from services.messages import (CameraInfo, Command, EventPacket, Image, MessageE
                                image_to_array)
 from services.runtime import Service, ServiceOptions
 from services.tracker.ego import MODES as EGO_MODES
-from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
+from services.tracker.ego.rotation import LOST, STATES, RotationParams, RotationTracker
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
 
@@ -125,13 +125,12 @@ class TrackerService(Service):
             last_us = msg.stamp
             events = undistort(msg.events) if undistort is not None else msg.events
             for est in await asyncio.to_thread(self.rotation.add, events):
+                if est.state == LOST and self.status.get("ego_state") != STATES[LOST]:
+                    log.warning("ego-motion of %s lost: its events are no sharper for any rotation", cam)
+                self.status["ego_state"] = STATES[est.state]
                 if est.state == LOST:  # no pose: the events say nothing of the motion (see rotation.LOST)
-                    if self.status.get("ego_state") != "lost":
-                        log.warning("ego-motion of %s lost: its events are no sharper for any rotation", cam)
-                    self.status["ego_state"] = "lost"
                     self.status["ego_lost"] = self.status.get("ego_lost", 0) + 1
                     continue
-                self.status["ego_state"] = "still" if est.state == STILL else "tracking"
                 out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.zeros(3), q=est.quat, child=cam, omega=est.omega))
 
     async def _track(self) -> None:

@@ -28,6 +28,7 @@ from services.tracker.ego.panorama import PanoramaMap
 # leaves the events no sharper than not turning at all (noise, flicker, a scene of independently moving
 # things), so it means nothing. A still or lost estimate says w = 0, and the next window starts cold
 TRACKING, STILL, LOST = 0, 1, 2
+STATES = ("tracking", "still", "lost")  # their names
 
 
 @dataclass
@@ -137,14 +138,13 @@ class RotationTracker:
             # first round blurs them by `cold_sigma_px`, in a window as long as the fastest turn asks for, from
             # the best of a few rates (still, or turning about one axis); the second refines that rate as any
             # warm start is
-            solved = self._solve(end_us, self._window_us(p.cold_speed_deg_s), longest, self._cold_starts,
-                                 self._coarse, p.cold_iterations)
-            if solved is not None:
-                guess = solved[0]
-                solved = self._solve(end_us, self._window_us(np.degrees(np.linalg.norm(guess))), longest, guess)
+            coarse = self._solve(end_us, self._window_us(math.radians(p.cold_speed_deg_s)), longest,
+                                 self._cold_starts, self._coarse, p.cold_iterations)
+            guess = None if coarse is None else coarse[0]
         else:
             guess = self._predicted(end_us)
-            solved = self._solve(end_us, self._window_us(np.degrees(np.linalg.norm(guess))), longest, guess)
+        solved = None if guess is None else self._solve(end_us, self._window_us(float(np.linalg.norm(guess))),
+                                                        longest, guess)
         if solved is None:
             lo, hi = np.searchsorted(self._t, [end_us - longest, end_us], side="right")
             n = int(hi - lo)
@@ -159,10 +159,10 @@ class RotationTracker:
             self._track_map(est)
         return est
 
-    def _window_us(self, speed_deg_s: float) -> int:
+    def _window_us(self, speed_rad_s: float) -> int:
         """The window in which a turn at this speed sweeps `travel_px` across the image, within the limits."""
         p = self.params
-        speed_px_s = np.radians(speed_deg_s) * self.focal
+        speed_px_s = speed_rad_s * self.focal
         return int(np.clip(1e6 * p.travel_px / max(speed_px_s, 1e-9), p.min_window_us, p.max_window_us))
 
     def _solve(self, end_us: int, window: int, longest: int, guess: np.ndarray,
