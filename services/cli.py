@@ -397,6 +397,35 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from services.camera.usb.driver import UsbError, backend, discover
+
+    try:
+        found = discover(backend())
+    except UsbError as exc:
+        raise config.ConfigError(str(exc)) from None
+    if args.json:
+        print(json.dumps([d.as_dict() for d in found]))
+    elif not found:
+        print("no iniVation camera found on USB")
+    for d in found if not args.json else ():
+        size = f"{d.width}x{d.height}" if d.width else "?"
+        print(f"{d.model} serial {d.serial} ({size}, firmware {d.firmware}, logic {d.logic_version}.{d.logic_patch}, "
+              f"USB {d.usb_speed}, bus {d.bus} address {d.address}): "
+              + (d.problem or f"ready, open it with --source usb:{d.serial}"))
+    return 0
+
+
+def _cmd_usb_decode(args: argparse.Namespace) -> int:
+    from services.camera.usb.dump import decode_dump
+
+    summary = decode_dump(args.model, Path(args.dump), _output(args.out), progress=not args.json)
+    print(json.dumps(summary) if args.json else f"wrote {summary['events']} events ({summary['imu_samples']} IMU "
+          f"samples, {summary['timestamp_resets']} timestamp resets, {summary['dropped_words']} words dropped) "
+          f"of {args.dump} to {args.out}")
+    return 0
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     from services.camera.recorder import RecordService
 
@@ -616,6 +645,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output", help="FILE.h5, FILE.aedat4, events.txt, or a folder for ECD text")
     p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
     p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser("devices", help="list the iniVation USB cameras plugged in (model, serial, versions, "
+                       "USB speed, permission problems)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_devices)
+
+    p = sub.add_parser("usb-decode", help="decode a raw dump of a camera's USB bulk stream into an event file")
+    p.add_argument("dump", metavar="DUMP.bin", help="the bytes read from the camera's bulk endpoint 0x82")
+    p.add_argument("--model", required=True, choices=("dvxplorer", "dvxplorer-lite", "davis346", "davis240"),
+                   help="the camera the dump came from (its word layout and sensor size)")
+    p.add_argument("--out", required=True, metavar="EVENTS.h5", help="output ETAM HDF5 file")
+    p.add_argument("--json", action="store_true", help="print a JSON summary, no progress bar")
+    p.set_defaults(func=_cmd_usb_decode)
 
     p = sub.add_parser("record", help="record live messages to an MCAP file (lossless; Ctrl-C to stop)")
     _zenoh_flags(p)

@@ -278,7 +278,13 @@ def open_sources(spec: str, seed: int = 0, loop: bool = False, sim_params: SimPa
         sc = scenes[scene](seed=seed, **(scene_args or {}))
         return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)]
     if spec == "usb" or spec.startswith("usb:"):
-        raise SourceError(f"source {spec!r}: USB cameras are not supported yet")
+        from services.camera.usb.driver import UsbError
+        from services.camera.usb.source import UsbSource
+
+        try:
+            return [UsbSource(spec)]
+        except UsbError as exc:
+            raise SourceError(f"source {spec!r}: {exc}") from None
     if not Path(spec).exists():
         raise SourceError(f"source {spec!r}: no such file, and not a known source "
                           f"({', '.join('sim:' + s for s in SIM_SCENES)}, or a recording's path)")

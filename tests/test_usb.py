@@ -1,0 +1,245 @@
+"""The pyusb driver against the fake camera: wire test vectors, round trips, discovery, streaming, unplugging."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.camera.formats import open_recording
+from services.camera.usb import protocol as pr
+from services.camera.usb.driver import UsbCamera, UsbError, discover
+from services.camera.usb.encode import encode
+from services.camera.usb.fake import FakeBackend, FakeCamera
+from services.camera.usb.source import UsbSource
+from services.camera.usb.words import WordDecoder
+from services.messages import EVENT_DTYPE
+
+from tests.conftest import ROOT, etam_argv, free_port
+
+
+def _hex(text: str) -> bytes:
+    return bytes.fromhex(text.replace(" ", ""))
+
+
+def _events(rows: list[tuple[int, int, int, int]]) -> np.ndarray:
+    return np.array(rows, EVENT_DTYPE)
+
+
+def test_davis_test_vectors_decode_as_the_reference_states() -> None:
+    d = WordDecoder(False, 346, 260)
+    out = d.decode(_hex("01 00  64 80  32 10  C8 30  C9 20  FF FF  01 70  05 80  03 11  59 31"))  # TV-1
+    assert out.resets == 1 and out.dropped == 0
+    np.testing.assert_array_equal(out.events, _events([(100, 200, 50, 1), (100, 201, 50, 0), (32773, 345, 259, 1)]))
+    out = WordDecoder(False, 346, 260).decode(_hex("03 70 34 92 05 10 07 30"))  # TV-2: the wrap multiplier
+    np.testing.assert_array_equal(out.events, _events([(102964, 7, 5, 1)]))
+
+
+def test_dvxplorer_test_vector_decodes_as_the_reference_states() -> None:
+    out = WordDecoder(True, 640, 480).decode(_hex("0A 80  11 18  85 40  05 30  80 21  12 10  CA 48  FF 31"))  # TV-3
+    expected = [(10, 17, 40, 1), (10, 17, 42, 1), (10, 17, 63, 0)] + [(10, 18, y, 0) for y in range(80, 88)]
+    np.testing.assert_array_equal(out.events, _events(expected))
+
+
+@pytest.mark.parametrize("dvx, scale, accel_g, gyro_deg_s, temp_c", [
+    (False, "E5", (1, 0, -1), (9.9945, 0, -9.9945), 35.0),  # TV-4: MPU-6050, a is x
+    (True, "EA", (0, 1, -1), (0, 9.9945, -9.9945), 23.0),  # TV-5: BMI160, libcaer's mapping (a is y)
+])
+def test_imu_test_vectors_decode_as_the_reference_states(dvx: bool, scale: str, accel_g: tuple, gyro_deg_s: tuple,
+                                                         temp_c: float) -> None:
+    words = (f"05 00 {scale} 53 20 50 00 50 00 50 00 50 E0 50 00 50 00 50 00 50 02 50 8F 50 00 50"
+             " 00 50 FD 50 71 50 07 00")
+    out = WordDecoder(dvx, 346, 260).decode(_hex(words))
+    np.testing.assert_allclose(out.accel[0] / 9.80665, accel_g, atol=1e-4)
+    np.testing.assert_allclose(np.rad2deg(out.gyro[0]), gyro_deg_s, atol=1e-3)
+    assert out.temperature[0] == pytest.approx(temp_c)
+
+
+def test_addresses_beyond_the_sensor_and_an_odd_byte_are_dropped_and_counted() -> None:
+    out = WordDecoder(False, 346, 260).decode(_hex("64 80  32 10  5A 31  C8 30  07"))  # x = 346: off the sensor
+    np.testing.assert_array_equal(out.events, _events([(100, 200, 50, 1)]))
+    assert out.dropped == 2
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.booleans(), st.integers(1, 3000), st.lists(st.integers(0, 200), max_size=8))
+def test_random_events_encoded_as_the_fake_does_decode_to_the_same_events(seed: int, dvx: bool, n: int,
+                                                                          cuts: list[int]) -> None:
+    rng = np.random.default_rng(seed)
+    width, height = (640, 480) if dvx else (346, 260)
+    ev = np.zeros(n, EVENT_DTYPE)
+    # gaps up to 20 s: many wraps, some of several thousand at once
+    ev["t"] = np.cumsum(rng.choice([0, 1, 7, 40_000, 20_000_000], n, p=[0.5, 0.3, 0.15, 0.04, 0.01]))
+    ev["x"], ev["y"], ev["p"] = rng.integers(0, width, n), rng.integers(0, height, n), rng.integers(0, 2, n)
+    if dvx:  # one readout reports a pixel once
+        ev = np.unique(ev)
+    words, _ = encode(ev, dvx)
+    data = words.tobytes()
+    decoder = WordDecoder(dvx, width, height)
+    bounds = sorted({0, len(data), *(2 * (c * len(words) // 201) for c in cuts)})  # cut anywhere between words
+    got = np.concatenate([decoder.decode(data[a:b]).events for a, b in zip(bounds, bounds[1:], strict=False)])
+    order = ["t", "x", "y", "p"]
+    np.testing.assert_array_equal(np.sort(got, order=order), np.sort(ev, order=order))
+
+
+def _fake(model: str = "dvxplorer", serial: str = "DXA00001", events=None, **kw) -> FakeCamera:  # noqa: ANN001
+    cam = FakeCamera(model=model, serial=serial, **kw)
+    if events is not None:
+        cam.events = events
+    return cam
+
+
+def _listed(events: np.ndarray):  # noqa: ANN202 - EventsIn
+    """A fake camera's events: the listed ones, each sent once its time has come."""
+    return lambda since, until: events[(events["t"] > since) & (events["t"] <= until)]
+
+
+def test_discovery_names_model_serial_versions_and_what_stops_a_camera() -> None:
+    found = discover(FakeBackend([_fake(), _fake("davis346", "DAV00002", address=5),
+                                  _fake("davis240", "OLD00003", address=6, logic_version=17)]))
+    assert [(d.model, d.serial, d.width, d.height, d.firmware, d.logic_version) for d in found] == [
+        ("DVXplorer", "DXA00001", 640, 480, 9, 18), ("DAVIS346", "DAV00002", 346, 260, 6, 18),
+        ("DAVIS240C", "OLD00003", 240, 180, 4, 17)]
+    assert found[0].problem is None and found[1].problem is None
+    assert "logic version 17" in found[2].problem and "update its firmware" in found[2].problem
+    with pytest.raises(UsbError, match="logic version 17"):
+        UsbCamera("OLD00003", FakeBackend([_fake("davis240", "OLD00003", logic_version=17)])).open()
+
+
+def test_opening_an_absent_serial_names_the_cameras_found() -> None:
+    with pytest.raises(UsbError, match="no camera with serial NOPE.*found: DXA00001"):
+        UsbCamera("NOPE", FakeBackend([_fake()])).open()
+    with pytest.raises(UsbError, match="no iniVation camera found"):
+        UsbCamera(None, FakeBackend([])).open()
+
+
+def test_the_control_transfers_are_the_reference_ones() -> None:
+    cam = _fake()
+    camera = UsbCamera(None, FakeBackend([cam]))
+    camera.open()
+    camera.start()
+    camera.close()
+    sent = [(r, i, v, data) for _, r, v, i, data in cam.requests]
+    # TV-8: DVS run, the timestamp-reset pulse, the OFF bias of the default preset, MODE = stream, and the
+    # early-packet delay of 1 ms at the fake's 80 MHz x 1.040 USB clock
+    assert (pr.VR_FPGA_CONFIG, 3, 1, _hex("00 00 00 01")) in sent
+    assert (pr.VR_FPGA_CONFIG_MULTIPLE, 0, 2, _hex("00 02 00 00 00 01  00 02 00 00 00 00")) in sent
+    assert (pr.VR_FPGA_CONFIG, 0x1E, 5, _hex("00 00 00 08")) in sent
+    assert (pr.VR_FPGA_CONFIG, 0x3000, 5, _hex("00 00 00 02")) in sent
+    assert (pr.VR_FPGA_CONFIG, 1, 9, _hex("00 01 45 00")) in sent
+    # stopped: the sensor is off and back in reset
+    assert cam.registers[pr.BIAS, pr.DVX_MODE] == 0 and cam.registers[pr.MUX, pr.MUX_RUN_CHIP] == 0
+
+
+def _collect(camera: UsbCamera, n: int, timeout_s: float = 20.0) -> np.ndarray:
+    got, deadline = [], time.monotonic() + timeout_s
+    while sum(len(g) for g in got) < n and time.monotonic() < deadline:
+        got += [d.events for d in camera.read()]
+        time.sleep(0.01)
+    return np.concatenate(got) if got else np.zeros(0, EVENT_DTYPE)
+
+
+@pytest.mark.parametrize("model", ["dvxplorer", "davis346"])
+def test_a_camera_streams_the_fakes_events_through_the_driver_unchanged(model: str) -> None:
+    rng = np.random.default_rng(3)
+    n = 5000
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = np.sort(rng.integers(1, 300_000, n))
+    ev["x"], ev["y"], ev["p"] = rng.integers(0, 240, n), rng.integers(0, 180, n), rng.integers(0, 2, n)
+    ev = np.unique(ev)
+    cam = _fake(model, events=_listed(ev))
+    camera = UsbCamera(None, FakeBackend([cam]))
+    camera.open()
+    camera.start()
+    try:
+        got = _collect(camera, len(ev))
+    finally:
+        camera.close()
+    order = ["t", "x", "y", "p"]
+    np.testing.assert_array_equal(np.sort(got, order=order), np.sort(ev, order=order))
+    assert camera.dropped_buffers == 0 and camera.failure is None
+
+
+def test_imu_samples_arrive_with_gravity() -> None:
+    camera = UsbCamera(None, FakeBackend([_fake("davis346")]))
+    camera.open()
+    camera.start()
+    deadline, accel = time.monotonic() + 20, []
+    while not accel and time.monotonic() < deadline:
+        accel += [d.accel for d in camera.read() if len(d.accel)]
+        time.sleep(0.02)
+    camera.close()
+    np.testing.assert_allclose(accel[0][0], (0, 0, 9.80665), atol=1e-3)
+
+
+def test_an_unplugged_camera_is_reported_and_found_again_when_it_is_back(caplog) -> None:  # noqa: ANN001
+    caplog.set_level(logging.INFO)
+    cam = _fake(events=lambda since, until: _events([(until, 1, 2, 1)]))
+    source = UsbSource("usb:DXA00001", backend_=FakeBackend([cam]))
+    try:
+        first = _advance_until(source, lambda ev: len(ev) > 0)
+        cam.unplug()
+        _advance_until(source, lambda ev: source.camera.failure is not None, keep=False)
+        assert "unplugged" in caplog.text
+        cam.plug()
+        later = _advance_until(source, lambda ev: len(ev) > 0)
+        assert "reconnected" in caplog.text
+        assert later["t"][0] > first["t"][-1]  # time goes on rising across the new session
+    finally:
+        source.close()
+
+
+def _advance_until(source: UsbSource, done, keep: bool = True, timeout_s: float = 20.0) -> np.ndarray:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        ev = source.advance(0)
+        if done(ev):
+            return ev
+        time.sleep(0.02)
+    raise AssertionError("timed out")
+
+
+def test_usb_decode_writes_a_dump_as_an_event_file(tmp_path: Path) -> None:
+    dump = tmp_path / "dump.bin"
+    dump.write_bytes(_hex("01 00  64 80  32 10  C8 30  C9 20  FF FF  01 70  05 80  03 11  59 31"))
+    out = subprocess.run(etam_argv("usb-decode", "--model", "davis346", str(dump), "--out", str(tmp_path / "e.h5"),
+                                   "--json"), cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["events"] == 3
+    with open_recording(tmp_path / "e.h5") as rec:
+        assert (rec.width, rec.height) == (346, 260)
+        np.testing.assert_array_equal(np.concatenate(list(rec.chunks()))["x"], [200, 201, 345])
+    bad = subprocess.run(etam_argv("usb-decode", "--model", "davis999", str(dump), "--out", str(tmp_path / "x.h5")),
+                         cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "invalid choice" in bad.stderr
+
+
+def test_devices_lists_the_fake_cameras() -> None:
+    env = {**os.environ, "ETAM_FAKE_USB": "dvxplorer:DXA00001,davis346"}
+    out = subprocess.run(etam_argv("devices", "--json"), cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert [(d["model"], d["serial"]) for d in json.loads(out.stdout)] == [("DVXplorer", "DXA00001"),
+                                                                          ("DAVIS346", "FAKE0002")]
+
+
+@pytest.mark.slow
+def test_up_streams_a_usb_camera_to_the_tracker(tmp_path: Path, rig: str) -> None:
+    report = tmp_path / "r.json"
+    env = {**os.environ, "ETAM_FAKE_USB": "davis346"}
+    proc = subprocess.run(etam_argv("up", "--source", "usb", "--duration", "8", "--no-web", "--report", str(report),
+                                    "--rig", rig, "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING"),
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    keys = json.loads(report.read_text())["keys"]
+    events, tracks = keys[f"etam/{rig}/camera/cam0/events"], keys[f"etam/{rig}/tracker/objects/tracks"]
+    assert events["events"] > 100_000 and events["dropped"] == 0 and tracks["msg_rate"] > 50
+    assert keys[f"etam/{rig}/camera/cam0/imu"]["msg_rate"] > 50
+    assert "dropped" not in proc.stderr
