@@ -8,7 +8,8 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import filters, latency, mapping, mosaic, odometry, playback, readers, tracking, transport, writers
+from benchmarks import (filters, latency, mapping, mosaic, odometry, playback, readers, tracking, transport, usb,
+                        writers)
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -44,6 +45,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "odometry": odometry.run,
     "latency": latency.run,
     "simulator": _simulator,
+    "usb": usb.run,
 }
 
 
@@ -162,6 +164,10 @@ def format_results(results: dict) -> str:
                          f"orientation error at the end {row['final_rot_err_deg']:.2f} deg (RMS "
                          f"{row['ate_rot_deg']:.2f}), RPE {row['rpe_deg_per_s']:.2f} deg/s; integration alone: "
                          f"{row['integrated_final_rot_err_deg']:.2f} deg at the end")
+    for row in results.get("usb", []):
+        lines.append(f"usb decode {row['model']:>9}: {row['events_per_s'] / 1e6:6.1f} Mev/s on one core "
+                     f"({row['mb_per_s']:.0f} MB/s, {row['bytes_per_event']:.2f} bytes an event, "
+                     f"{row['events']} events)")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

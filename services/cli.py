@@ -24,7 +24,10 @@ log = logging.getLogger("etam")
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 SOURCE_HELP = ("event source: sim:objects (default), sim:rotation, sim:6dof, sim:stereo (two cameras), "
-               "or a recording's path")
+               "a recording's path, usb (the first iniVation camera) or usb:SERIAL")
+USB_BIAS_HELP = ("a USB camera's sensitivity preset: very_low, low, default, high, very_high (DVXplorer); "
+                 "low, default, high (DAVIS)")
+USB_ROI_HELP = "a USB camera's region of interest X0,Y0,X1,Y1 (inclusive), cropped on the device"
 SIM_PARAM_HELP = ("a simulator parameter (repeatable): contrast, contrast_sigma, refractory_us, noise_rate_hz, "
                   "hot_pixel_fraction, hot_pixel_rate_hz, max_step_px, min_dt_us, max_dt_us")
 
@@ -90,6 +93,20 @@ def _service_options(args: argparse.Namespace, kind: str):  # noqa: ANN202 - Ser
     return ServiceOptions(rig=config.resolve_rig(args.rig), name=args.name or kind, zenoh=_zenoh_settings(args))
 
 
+def _usb_options(args: argparse.Namespace) -> dict:
+    """`--usb-bias` and `--usb-roi` as the USB source takes them; ConfigError naming a bad ROI."""
+    out: dict = {"bias": args.usb_bias or "default"}
+    if args.usb_roi:
+        try:
+            x0, y0, x1, y1 = (int(v) for v in args.usb_roi.split(","))
+        except ValueError:
+            raise config.ConfigError(f"--usb-roi takes X0,Y0,X1,Y1 in pixels, got {args.usb_roi!r}") from None
+        if not (0 <= x0 <= x1 and 0 <= y0 <= y1):
+            raise config.ConfigError(f"--usb-roi needs 0 <= X0 <= X1 and 0 <= Y0 <= Y1, got {args.usb_roi}")
+        out["roi"] = (x0, y0, x1, y1)
+    return out
+
+
 def _cmd_camera(args: argparse.Namespace) -> int:
     from services.camera.service import CameraService
     from services.camera.sources import open_sources
@@ -100,7 +117,7 @@ def _cmd_camera(args: argparse.Namespace) -> int:
     from services.camera.simulator import SimParams
 
     params = SimParams.parse(args.sim_param or [])
-    sources = open_sources(args.source, seed=args.seed, loop=args.loop, sim_params=params)
+    sources = open_sources(args.source, seed=args.seed, loop=args.loop, sim_params=params, usb=_usb_options(args))
     chains = [parse_chain(args.filter or [], src.width, src.height, src.K,
                           src.calibration.dist_model if src.calibration else "none",
                           src.calibration.dist if src.calibration else None) for src in sources]
@@ -159,7 +176,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
         mapper_args=MAPPED_SIMS.get(args.source, ()),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
-                     *(a for item in args.sim_param or [] for a in ("--sim-param", item))),
+                     *(a for item in args.sim_param or [] for a in ("--sim-param", item)),
+                     *(("--usb-bias", args.usb_bias) if args.usb_bias else ()),
+                     *(("--usb-roi", args.usb_roi) if args.usb_roi else ())),
     )
     from services.camera.simulator import SimParams
     from services.camera.sources import open_sources
@@ -170,7 +189,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
         raise config.ConfigError(f"--rate must be >= 0 (0: as fast as possible), got {args.rate}")
     from services.camera.filters import parse_chain
 
-    sources = open_sources(args.source)  # a bad source or filter fails here, before anything starts
+    # a bad source or filter fails here, before anything starts
+    sources = open_sources(args.source, usb=_usb_options(args))
+    for src in sources:  # a USB camera is released again for the camera service to open
+        getattr(src, "close", lambda: None)()
     parse_chain([f for f in args.filter or [] if f != "undistort"], sources[0].width, sources[0].height)
     if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
         opts.tracker_args = ("--cam", "cam0")
@@ -466,6 +488,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loop", action="store_true", help="play a recording again and again")
     p.add_argument("--filter", action="append", metavar="NAME[:ARGS]", help="camera filter chain (see etam camera)")
     p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
+    p.add_argument("--usb-bias", metavar="PRESET", help=USB_BIAS_HELP)
+    p.add_argument("--usb-roi", metavar="X0,Y0,X1,Y1", help=USB_ROI_HELP)
     p.add_argument("--rig", help="rig name (env ETAM_RIG; default: host name)")
     p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")
@@ -493,6 +517,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "mask:IMAGE.png, polarity:on|off, hotpixels[:LEARN_US], undistort")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
     p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
+    p.add_argument("--usb-bias", metavar="PRESET", help=USB_BIAS_HELP)
+    p.add_argument("--usb-roi", metavar="X0,Y0,X1,Y1", help=USB_ROI_HELP)
     p.add_argument("--slice-us", type=int, default=1000, help="packet time slice in us (default 1000)")
     p.add_argument("--max-events", type=int, default=100_000, help="largest packet (default 100000)")
     p.set_defaults(func=_cmd_camera)

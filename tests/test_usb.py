@@ -243,3 +243,45 @@ def test_up_streams_a_usb_camera_to_the_tracker(tmp_path: Path, rig: str) -> Non
     assert events["events"] > 100_000 and events["dropped"] == 0 and tracks["msg_rate"] > 50
     assert keys[f"etam/{rig}/camera/cam0/imu"]["msg_rate"] > 50
     assert "dropped" not in proc.stderr
+
+
+@pytest.mark.parametrize("model, roi", [("dvxplorer", (100, 60, 539, 419)), ("davis346", (20, 30, 150, 101))])
+def test_a_region_of_interest_is_cropped_on_the_device(model: str, roi: tuple[int, int, int, int]) -> None:
+    rng = np.random.default_rng(4)
+    n = 4000
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = np.sort(rng.integers(1, 200_000, n))
+    ev["x"], ev["y"], ev["p"] = rng.integers(0, 346, n), rng.integers(0, 260, n), 1
+    ev = np.unique(ev)
+    cam = _fake(model, events=_listed(ev))
+    camera = UsbCamera(None, FakeBackend([cam]), roi=roi)
+    camera.open()
+    if model == "dvxplorer":  # TV-9: the cropper's registers for x 100..539, y 60..419
+        assert [cam.registers[pr.BIAS, a] for a in (*pr.DVX_CROP_X, *pr.DVX_CROP_Y, pr.DVX_CROP_BYPASS)] == [
+            0x00, 0x64, 0x02, 0x1B, 7, 0xF0, 52, 0x0F, 0]
+    x0, y0, x1, y1 = roi
+    inside = ev[(ev["x"] >= x0) & (ev["x"] <= x1) & (ev["y"] >= y0) & (ev["y"] <= y1)]
+    camera.start()
+    try:
+        got = _collect(camera, len(inside), timeout_s=10)
+        time.sleep(0.3)
+        got = np.concatenate([got, *[d.events for d in camera.read()]])
+    finally:
+        camera.close()
+    order = ["t", "x", "y", "p"]
+    np.testing.assert_array_equal(np.sort(got, order=order), np.sort(inside, order=order))
+
+
+def test_a_bad_preset_or_roi_is_refused_by_name_and_the_camera_released() -> None:
+    cam = _fake("davis346")
+    with pytest.raises(UsbError, match="bias preset 'very_high' is not one of low, default, high"):
+        UsbCamera(None, FakeBackend([cam]), bias="very_high").open()
+    with pytest.raises(UsbError, match="reaches beyond its 346x260"):
+        UsbCamera(None, FakeBackend([cam]), roi=(0, 0, 400, 10)).open()
+    env = {**os.environ, "ETAM_FAKE_USB": "davis346"}
+    out = subprocess.run(etam_argv("camera", "--source", "usb", "--usb-roi", "5,5,1"), cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "--usb-roi takes X0,Y0,X1,Y1" in out.stderr
+    out = subprocess.run(etam_argv("camera", "--source", "usb", "--usb-bias", "loud"), cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "bias preset 'loud'" in out.stderr and "Traceback" not in out.stderr

@@ -262,10 +262,11 @@ STEREO_BASELINE_M = 0.1  # the simulated stereo rig's baseline, along the left c
 
 
 def open_sources(spec: str, seed: int = 0, loop: bool = False, sim_params: SimParams | None = None,
-                 scene_args: dict[str, float] | None = None) -> list[EventSource]:
+                 scene_args: dict[str, float] | None = None, usb: dict | None = None) -> list[EventSource]:
     """Open the cameras of a source from its command-line name (``sim:objects``, ``sim:stereo``, the
-    path of a recording): one source, or one per camera of a rig, the first first. `scene_args` go to a
-    simulated scene's constructor (such as `peak_deg_s` of the rotation scene)."""
+    path of a recording, ``usb``, ``usb:SERIAL``): one source, or one per camera of a rig, the first
+    first. `scene_args` go to a simulated scene's constructor (such as `peak_deg_s` of the rotation
+    scene), `usb` to a USB camera's (`bias`, `roi`)."""
     if spec.startswith("sim:"):
         scene = spec[4:]
         if scene == "stereo":
@@ -282,7 +283,7 @@ def open_sources(spec: str, seed: int = 0, loop: bool = False, sim_params: SimPa
         from services.camera.usb.source import UsbSource
 
         try:
-            return [UsbSource(spec)]
+            return [UsbSource(spec, **(usb or {}))]
         except UsbError as exc:
             raise SourceError(f"source {spec!r}: {exc}") from None
     if not Path(spec).exists():

@@ -199,7 +199,15 @@ class UsbCamera:
                                    imu_flips=(bool(flips & 4), bool(flips & 2), bool(flips & 1)))
         self.info = DeviceInfo(model, serial, dev.bus, dev.address, firmware, logic, patch,
                                _SPEEDS.get(dev.speed, "unknown"), width, height)
-        self._configure()
+        try:
+            if self.roi is not None and not (self.roi[2] < width and self.roi[3] < height):
+                raise UsbError(f"camera {serial}: ROI {self.roi} reaches beyond its {width}x{height} pixels")
+            self._configure()
+        except BaseException:
+            usb.util.release_interface(dev, 0)
+            usb.util.dispose_resources(dev)
+            self.dev = None
+            raise
         return self.info
 
     # control transfers

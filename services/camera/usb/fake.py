@@ -138,7 +138,7 @@ class FakeCamera:
         now_us = int((time.monotonic() - self._clock0) * 1e6)
         if now_us <= self._sent_us:
             return
-        events = self.events(self._sent_us, now_us)
+        events = self._cropped(self.events(self._sent_us, now_us))
         imu_on = self.registers.get((pr.IMU, pr.IMU_RUN_GYRO)) == 1
         chunks = []
         for t_imu in range(self._next_imu_us, now_us + 1, IMU_PERIOD_US) if imu_on else ():
@@ -152,6 +152,25 @@ class FakeCamera:
         chunks.append(self._encode(events))
         self._queue += b"".join(c.astype("<u2").tobytes() for c in chunks)
         self._sent_us = now_us
+
+    def _cropped(self, events: np.ndarray) -> np.ndarray:
+        """The events inside the region of interest its registers set: a DVXplorer's cropper (X bounds,
+        Y groups with their masks), a DAVIS's DVS ROI filter."""
+        r = self.registers.get
+        if self.dvx:
+            if r((pr.BIAS, pr.DVX_CROP_BYPASS), 1):
+                return events
+            xs = [r((pr.BIAS, a), 0) for a in pr.DVX_CROP_X]
+            x0, x1 = xs[0] << 8 | xs[1], xs[2] << 8 | xs[3]
+            g0, m0, g1, m1 = (r((pr.BIAS, a), 0) for a in pr.DVX_CROP_Y)
+            y0 = 8 * g0 + (m0 & -m0).bit_length() - 1 if g0 != g1 else 8 * g0 + (m1 & -m1).bit_length() - 1
+            y1 = 8 * g1 + m1.bit_length() - 1
+        else:
+            if (pr.DVS, pr.DVS_ROI[2]) not in self.registers:
+                return events
+            x0, y0, x1, y1 = (r((pr.DVS, a), 0) for a in pr.DVS_ROI)
+        keep = (events["x"] >= x0) & (events["x"] <= x1) & (events["y"] >= y0) & (events["y"] <= y1)
+        return events[keep]
 
     def _encode(self, events: np.ndarray) -> np.ndarray:
         words, self._stream_us = encode(events, self.dvx, self._stream_us)
