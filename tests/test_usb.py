@@ -23,7 +23,10 @@ from services.camera.usb.source import UsbSource
 from services.camera.usb.words import WordDecoder
 from services.messages import EVENT_DTYPE
 
-from tests.conftest import ROOT, etam_argv, free_port
+from services.messages import Stats
+
+from tests.conftest import ROOT, client_session, etam_argv, free_port, wait_for
+from tests.test_services import Collector
 
 
 def _hex(text: str) -> bytes:
@@ -231,18 +234,31 @@ def test_devices_lists_the_fake_cameras() -> None:
 
 
 @pytest.mark.slow
-def test_up_streams_a_usb_camera_to_the_tracker(tmp_path: Path, rig: str) -> None:
-    report = tmp_path / "r.json"
+def test_up_streams_a_usb_camera_to_the_tracker_and_the_dashboard(tmp_path: Path, rig: str) -> None:
+    report, endpoint = tmp_path / "r.json", f"tcp/127.0.0.1:{free_port()}"
     env = {**os.environ, "ETAM_FAKE_USB": "davis346"}
-    proc = subprocess.run(etam_argv("up", "--source", "usb", "--duration", "8", "--no-web", "--report", str(report),
-                                    "--rig", rig, "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING"),
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    with subprocess.Popen(etam_argv("up", "--source", "usb", "--duration", "12", "--web-port", str(free_port()),
+                                    "--report", str(report), "--rig", rig, "--listen", endpoint,
+                                    "--log-level", "WARNING"),
+                          cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        time.sleep(1.0)  # the router listens
+        with client_session(endpoint) as session:
+            stats = Collector(session, f"etam/{rig}/web/web/stats")
+
+            def dashboard_events() -> int:
+                rows = [r for m in stats.of(Stats) for r in m.keys
+                        if r["dir"] == "in" and r["key"].endswith("/events")]
+                return max((r["events"] for r in rows), default=0)
+
+            wait_for(lambda: dashboard_events() > 10_000, 60, "the dashboard receiving the USB camera's events")
+            stats.sub.undeclare()
+        _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
     keys = json.loads(report.read_text())["keys"]
     events, tracks = keys[f"etam/{rig}/camera/cam0/events"], keys[f"etam/{rig}/tracker/objects/tracks"]
     assert events["events"] > 100_000 and events["dropped"] == 0 and tracks["msg_rate"] > 50
     assert keys[f"etam/{rig}/camera/cam0/imu"]["msg_rate"] > 50
-    assert "dropped" not in proc.stderr
+    assert "dropped" not in err
 
 
 @pytest.mark.parametrize("model, roi", [("dvxplorer", (100, 60, 539, 419)), ("davis346", (20, 30, 150, 101))])
