@@ -3,7 +3,8 @@
 #   sudo deploy/install.sh            install, enable and start
 #   sudo deploy/install.sh --no-start install and enable only
 # Creates user `etam`, a virtualenv in /opt/etam/venv, /etc/etam/{etam.env,router.json5}
-# (kept if they exist), and the units etam-router, etam-camera, etam-tracker, etam-web, etam.target.
+# (kept if they exist), the units etam-router, etam-camera, etam-tracker, etam-web, etam.target, and the
+# udev rule for iniVation USB cameras (replug a camera plugged in before).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 src="$(dirname "$here")"
@@ -14,8 +15,11 @@ command -v python3 >/dev/null || { echo "install.sh: python3 (>= 3.11) is requir
 python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "install.sh: python3 >= 3.11 is required" >&2; exit 1; }
 
 id etam >/dev/null 2>&1 || useradd --system --home-dir /opt/etam --shell /usr/sbin/nologin etam
-# USB cameras: the etam user needs access to the device (udev rules come with the USB driver)
-getent group plugdev >/dev/null && usermod -aG plugdev etam
+# USB cameras: the etam user reads them through the udev rule's group (video)
+getent group video >/dev/null || groupadd --system video
+usermod -aG video etam
+install -m 0644 "$here/udev/65-etam-inivation.rules" /etc/udev/rules.d/65-etam-inivation.rules
+if command -v udevadm >/dev/null; then udevadm control --reload-rules && udevadm trigger --subsystem-match=usb || true; fi
 
 mkdir -p /opt/etam /etc/etam
 python3 -m venv /opt/etam/venv

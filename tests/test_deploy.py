@@ -65,3 +65,17 @@ def test_every_command_has_help(command: str, capsys: pytest.CaptureFixture[str]
     with pytest.raises(SystemExit) as exit_info:
         build_parser().parse_args([command, "--help"])
     assert exit_info.value.code == 0 and f"usage: etam {command}" in capsys.readouterr().out
+
+
+def test_udev_rule_covers_every_camera_the_driver_opens() -> None:
+    from fnmatch import fnmatch
+
+    from services.camera.usb import protocol as pr
+
+    rule = (DEPLOY / "udev" / "65-etam-inivation.rules").read_text()
+    line = next(x for x in rule.splitlines() if x.startswith("SUBSYSTEM"))
+    vendor = re.search(r'ATTR\{idVendor\}=="(\w+)"', line).group(1)
+    product = re.search(r'ATTR\{idProduct\}=="([^"]+)"', line).group(1)
+    assert int(vendor, 16) == pr.VID
+    assert all(fnmatch(f"{pid:04x}", product) for pid in pr.PIDS)
+    assert 'GROUP="video"' in line and "65-etam-inivation.rules" in (DEPLOY / "install.sh").read_text()

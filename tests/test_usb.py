@@ -21,12 +21,10 @@ from services.camera.usb.encode import encode
 from services.camera.usb.fake import FakeBackend, FakeCamera
 from services.camera.usb.source import UsbSource
 from services.camera.usb.words import WordDecoder
-from services.messages import EVENT_DTYPE
-
-from services.messages import Stats
+from services.messages import EVENT_DTYPE, Command, Stats
 
 from tests.conftest import ROOT, client_session, etam_argv, free_port, wait_for
-from tests.test_services import Collector
+from tests.test_services import Collector, _query
 
 
 def _hex(text: str) -> bytes:
@@ -138,8 +136,24 @@ def test_the_control_transfers_are_the_reference_ones() -> None:
     assert (pr.VR_FPGA_CONFIG, 0x1E, 5, _hex("00 00 00 08")) in sent
     assert (pr.VR_FPGA_CONFIG, 0x3000, 5, _hex("00 00 00 02")) in sent
     assert (pr.VR_FPGA_CONFIG, 1, 9, _hex("00 01 45 00")) in sent
+    assert (pr.VR_FPGA_CONFIG, 5, 4, _hex("00 00 04 10")) in sent  # trigger pulse length 10 us at 100 MHz x 1.040
+    # the read-modify-write registers after the defaults: global hold on and reset off, compression kept and
+    # polarity options off, subsampling and area blocking bypassed; then the readout restarted
+    assert [cam.registers[pr.BIAS, r] for r in (0x3255, 0x3067, 0x3200, 0x3204, pr.DVX_DTAG)] == [0x0D, 0x80, 0x06,
+                                                                                                  0, 2]
     # stopped: the sensor is off and back in reset
     assert cam.registers[pr.BIAS, pr.DVX_MODE] == 0 and cam.registers[pr.MUX, pr.MUX_RUN_CHIP] == 0
+
+
+def test_a_davis_gets_its_biases_filters_and_the_lite_its_subsampling_code() -> None:
+    davis = _fake("davis346")
+    UsbCamera(None, FakeBackend([davis])).open()
+    sent = [(v, i, data) for _, r, v, i, data in davis.requests if r == pr.VR_FPGA_CONFIG]
+    assert (5, 11, _hex("00 00 5F FF")) in sent  # TV-8: DAVIS346 ONBN = N 5/255
+    assert [davis.registers[pr.DVS, p] for p in (*pr.DVS_ROI, 31, 32)] == [0, 0, 345, 259, 1, 8]
+    lite = _fake("dvxplorer-lite")
+    UsbCamera(None, FakeBackend([lite])).open()
+    assert lite.registers[pr.BIAS, pr.DVX_SUBSAMPLE] == 0x09 and (pr.BIAS, pr.DVX_DUAL_BINNING) not in lite.registers
 
 
 def _collect(camera: UsbCamera, n: int, timeout_s: float = 20.0) -> np.ndarray:
@@ -251,6 +265,9 @@ def test_up_streams_a_usb_camera_to_the_tracker_and_the_dashboard(tmp_path: Path
                 return max((r["events"] for r in rows), default=0)
 
             wait_for(lambda: dashboard_events() > 10_000, 60, "the dashboard receiving the USB camera's events")
+            status = _query(session, f"etam/{rig}/camera/cam0/cmd", Command(op="ping")).result
+            assert status["usb_state"] == "streaming" and status["usb_device_dropped_events"] == 0
+            assert status["source"].startswith("usb:FAKE0001 (DAVIS346)")
             stats.sub.undeclare()
         _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
@@ -301,3 +318,31 @@ def test_a_bad_preset_or_roi_is_refused_by_name_and_the_camera_released() -> Non
     out = subprocess.run(etam_argv("camera", "--source", "usb", "--usb-bias", "loud"), cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "bias preset 'loud'" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_davis_whose_host_reads_too_slowly_drops_events_and_the_count_is_told(caplog) -> None:  # noqa: ANN001
+    caplog.set_level(logging.INFO)
+    rng = np.random.default_rng(5)
+
+    def dense(since: int, until: int) -> np.ndarray:  # some 2 Mev/s
+        n = (until - since) * 2
+        ev = np.zeros(n, EVENT_DTYPE)
+        ev["t"] = np.sort(rng.integers(since + 1, until + 1, n))
+        ev["x"], ev["y"], ev["p"] = rng.integers(0, 346, n), rng.integers(0, 260, n), 1
+        return ev
+
+    cam = _fake("davis346", events=dense, fifo_bytes=1 << 16)
+    source = UsbSource("usb", backend_=FakeBackend([cam]))
+    decode = source.camera.decoder.decode
+    source.camera.decoder.decode = lambda data: (time.sleep(0.05), decode(data))[1]  # a host that lags
+    try:
+        got = 0
+        deadline = time.monotonic() + 20
+        while source.device_dropped == 0 and time.monotonic() < deadline:
+            got += len(source.advance(0))
+            time.sleep(0.05)
+    finally:
+        source.close()
+    assert source.device_dropped > 0 and "the camera dropped" in caplog.text
+    assert source.health()["usb_device_dropped_events"] == source.device_dropped
+    assert cam.dropped >= source.device_dropped  # told as the device counts them, none invented

@@ -123,6 +123,8 @@ class CameraService(Service):
             if time.monotonic() >= next_info:
                 for cam in cams:
                     cam.info_out.publish(cam.info())
+                    if hasattr(cam.source, "health"):  # a live camera's link and losses
+                        self.status.update(cam.source.health())
                 next_info += 1.0
             if self.paused or done:
                 wall0, sensor0 = time.monotonic(), sensor_us  # resume from here, not in a rush

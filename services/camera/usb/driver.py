@@ -226,38 +226,73 @@ class UsbCamera:
     def _configure(self) -> None:
         """The sensor's power-up, biases and default settings (sections 4.1 A-B, 4.4 B, 7, 8)."""
         B = pr.BIAS
+        presets = pr.DVX_BIAS_PRESETS if self.dvx else pr.DAVIS_SENSITIVITY
+        if self.bias not in presets:
+            raise UsbError(f"bias preset {self.bias!r} is not one of {', '.join(presets)}")
+        usb_delay = round(8 * 125 * self._clock_mhz(pr.USB_CLOCK))  # 1 ms early-packet delay
         if self.dvx:
-            if self.bias not in pr.DVX_BIAS_PRESETS:
-                raise UsbError(f"bias preset {self.bias!r} is not one of {', '.join(pr.DVX_BIAS_PRESETS)}")
             self.write(pr.MUX, pr.MUX_RUN_CHIP, 1)
             time.sleep(0.01)
+            lite = self.info.model == pr.DVX_CHIPS[19]
             lsb, sf, on, off = pr.DVX_BIAS_PRESETS[self.bias]
-            self._writes([(B, 0x000D, 0x24), (B, 0x000F, 0x07), (B, 0x0010, 0xFF), (B, 0x0013, 0x03),
-                          (B, 0x0014, 0x7F), (B, 0x0015, 0x00), (B, 0x3011, 0xA0), (B, 0x3019, 0x00),
-                          (B, 0x301E, 0x01), (B, 0x3067, 0x80), (B, 0x3255, 0x0C), (B, 0x3266, 0x08),
-                          (B, 0x3235, 0x03), (B, 0x3236, 0xE7), (B, 0x3234, 49), (B, 0x323D, 50),
-                          (B, 0x3243, 50), (B, 0x3247, 50), (B, 0x3259, 50), (B, 0x3600, 0x01),
-                          (pr.MUX, pr.MUX_DROP_EXT, 1), (pr.MUX, pr.MUX_DROP_DVS, 0),
-                          (pr.USB, pr.USB_EARLY_PACKET_DELAY, round(8 * 125 * self._usb_clock_mhz())),
+            self._writes([(B, r, v) for r, v in pr.DVX_SENSOR_INIT])
+            self._writes([(pr.MUX, pr.MUX_DROP_EXT, 1), (pr.MUX, pr.MUX_DROP_DVS, 0),  # DVS back-pressured, not dropped
+                          *((pr.IMU, k, v) for k, v in pr.DVX_IMU), *self._extinput(),
+                          (pr.USB, pr.USB_EARLY_PACKET_DELAY, usb_delay),
                           (B, 0x0018, 0x04), (B, 0x000C, 0x14), (B, 0x000B, lsb), (B, 0x0012, sf),
-                          (B, 0x001C, on), (B, 0x001E, off), (B, pr.DVX_DTAG, 0)])
+                          (B, 0x001C, on), (B, 0x001E, off), (B, pr.DVX_DTAG, 0)])  # readout stopped to set it
+            for reg, on_bits, off_bits in pr.DVX_UPDATES:
+                self.write(B, reg, (_read(self.dev, B, reg) | on_bits) & ~off_bits & 0xFF)
+            self._writes([*(((B, pr.DVX_DUAL_BINNING, 0),) if not lite else ()),
+                          (B, pr.DVX_SUBSAMPLE, 0x09 if lite else 0x00),  # no subsampling (the Lite's (v<<1)|1)
+                          *((B, r, v) for r, v in pr.DVX_READOUT)])
             self._dvx_crop()
             self.write(B, pr.DVX_DTAG, 2)  # readout restart
         else:
-            if self.bias not in pr.DAVIS_SENSITIVITY:
-                raise UsbError(f"bias preset {self.bias!r} is not one of {', '.join(pr.DAVIS_SENSITIVITY)}")
             biases = dict(pr.DAVIS240_BIASES if self.info.width == 240 else pr.DAVIS346_BIASES)
             if self.info.width != 240:
                 biases[11], biases[12] = pr.DAVIS_SENSITIVITY[self.bias]
-            self._writes([(B, k, v) for k, v in biases.items()])
-            self._writes([(B, 136, 1), (B, 138, 1), (B, 143, 1), (pr.MUX, pr.MUX_DROP_EXT, 1),
-                          (pr.MUX, pr.MUX_DROP_DVS, 1), (pr.DVS, 4, 0), (pr.DVS, 5, 0),
-                          (pr.USB, pr.USB_EARLY_PACKET_DELAY, round(8 * 125 * self._usb_clock_mhz()))])
-            x0, y0, x1, y1 = self.roi or (0, 0, self.info.width - 1, self.info.height - 1)
-            self._writes(list(zip((pr.DVS,) * 4, pr.DVS_ROI, (x0, y0, x1, y1), strict=True)))
+            has = {flag: _read(self.dev, pr.DVS, flag) for flag in (
+                pr.DVS_HAS_PIXEL_FILTER, pr.DVS_HAS_BA_FILTER, pr.DVS_HAS_ROI_FILTER, pr.DVS_HAS_SKIP_FILTER,
+                pr.DVS_HAS_POLARITY_FILTER)}
+            cols, rows = _read(self.dev, pr.DVS, pr.DVS_COLUMNS), _read(self.dev, pr.DVS, pr.DVS_ROWS)
+            x0, y0, x1, y1 = self.roi or (0, 0, cols - 1, rows - 1)
+            if self.roi is not None and not has[pr.DVS_HAS_ROI_FILTER]:
+                raise UsbError(f"camera {self.info.serial}: its logic has no ROI filter")
+            aps_cols, aps_rows = _read(self.dev, pr.APS, 0), _read(self.dev, pr.APS, 1)
+            adc = self._clock_mhz(pr.ADC_CLOCK)
+            self._writes([*((B, k, v) for k, v in biases.items()), *((B, k, v) for k, v in pr.DAVIS_CHIP),
+                          *(((B, k, v) for k, v in pr.DAVIS_CHIP_346) if self.info.width != 240 else ()),
+                          (pr.MUX, pr.MUX_DROP_EXT, 1), (pr.MUX, pr.MUX_DROP_DVS, 1), (pr.DVS, 4, 0), (pr.DVS, 5, 0),
+                          # hot-pixel slots at an address beyond the sensor: off
+                          *(((pr.DVS, 11 + 2 * n, rows) for n in range(8)) if has[pr.DVS_HAS_PIXEL_FILTER] else ()),
+                          *(((pr.DVS, 12 + 2 * n, cols) for n in range(8)) if has[pr.DVS_HAS_PIXEL_FILTER] else ()),
+                          *(((pr.DVS, k, v) for k, v in pr.DVS_BA_FILTER) if has[pr.DVS_HAS_BA_FILTER] else ()),
+                          *(zip((pr.DVS,) * 4, pr.DVS_ROI, (x0, y0, x1, y1), strict=True)
+                            if has[pr.DVS_HAS_ROI_FILTER] else ()),
+                          *(((pr.DVS, k, v) for k, v in pr.DVS_SKIP_FILTER) if has[pr.DVS_HAS_SKIP_FILTER] else ()),
+                          *(((pr.DVS, k, v) for k, v in pr.DVS_POLARITY_FILTER) if has[pr.DVS_HAS_POLARITY_FILTER]
+                            else ()),
+                          # APS (left off: DVS only) with its whole frame, 4 ms exposure, 40 ms frame interval
+                          (pr.APS, 5, 1), (pr.APS, 8, 0), (pr.APS, 9, 0), (pr.APS, 10, max(aps_cols - 1, 0)),
+                          (pr.APS, 11, max(aps_rows - 1, 0)), (pr.APS, 12, round(4000 * adc)),
+                          (pr.APS, 13, round(40000 * adc)),
+                          *((pr.IMU, k, v) for k, v in pr.DAVIS_IMU), *self._extinput(),
+                          (pr.USB, pr.USB_EARLY_PACKET_DELAY, usb_delay)])
 
-    def _usb_clock_mhz(self) -> float:
-        return _read(self.dev, pr.SYSINFO, pr.USB_CLOCK) * _read(self.dev, pr.SYSINFO, pr.CLOCK_DEVIATION) / 1000
+    def _extinput(self) -> list[tuple[int, int, int]]:
+        """The trigger detector's defaults (pulses, active high, 10 us), and the generator's where there is one."""
+        logic = self._clock_mhz(pr.LOGIC_CLOCK)
+        E = pr.EXTINPUT
+        out = [(E, 1, 0), (E, 2, 0), (E, 3, 1), (E, 4, 1), (E, 5, round(10 * logic))]
+        if _read(self.dev, E, pr.EXT_HAS_GENERATOR):
+            out += [(E, 11, 0), (E, 12, 1), (E, 13, round(10 * logic)), (E, 14, round(5 * logic)), (E, 15, 0),
+                    (E, 16, 0)]
+        return out
+
+    def _clock_mhz(self, clock: int) -> float:
+        """A SYSINFO clock (LOGIC_CLOCK, ADC_CLOCK, USB_CLOCK) as it really runs, with the clock deviation."""
+        return _read(self.dev, pr.SYSINFO, clock) * _read(self.dev, pr.SYSINFO, pr.CLOCK_DEVIATION) / 1000
 
     def _dvx_crop(self) -> None:
         """The DVXplorer's cropper (section 8.2): bypassed without a ROI."""

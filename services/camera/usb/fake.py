@@ -66,6 +66,9 @@ class FakeCamera:
     plugged: bool = True
     registers: dict[tuple[int, int], int] = field(default_factory=dict)
     requests: list[tuple[int, int, int, int, bytes]] = field(default_factory=list)  # OUT transfers, in order
+    fifo_bytes: int = 1 << 22  # the device's buffer toward USB: a host that stops reading fills it
+    generated: int = 0  # events the sensor saw
+    dropped: int = 0  # ... that a full FIFO made it drop (DAVIS with DROP_DVS_ON_TRANSFER_STALL)
 
     def __post_init__(self) -> None:
         m = FAKE_MODELS[self.model]
@@ -76,7 +79,12 @@ class FakeCamera:
                          (pr.SYSINFO, pr.CLOCK_DEVIATION): 1040, (pr.SYSINFO, pr.LOGIC_PATCH): 4 if self.dvx else 1,
                          (pr.DVS, pr.DVS_COLUMNS): m.width, (pr.DVS, pr.DVS_ROWS): m.height,
                          (pr.DVS, pr.DVS_ORIENTATION): 0, (pr.IMU, pr.IMU_TYPE): m.imu_type,
-                         (pr.IMU, pr.IMU_ORIENTATION): 0}
+                         (pr.IMU, pr.IMU_ORIENTATION): 0, (pr.EXTINPUT, pr.EXT_HAS_GENERATOR): 1}
+        if not self.dvx:  # a DAVIS's logic has the DVS filters, and an APS of the DVS's size
+            self.identity |= {(pr.DVS, flag): 1 for flag in (pr.DVS_HAS_PIXEL_FILTER, pr.DVS_HAS_BA_FILTER,
+                                                              pr.DVS_HAS_ROI_FILTER, pr.DVS_HAS_SKIP_FILTER,
+                                                              pr.DVS_HAS_POLARITY_FILTER)}
+            self.identity |= {(pr.APS, 0): m.width, (pr.APS, 1): m.height, (pr.APS, 2): 0}
         self._lock = threading.Lock()
         self._queue = bytearray()
         self._clock0 = time.monotonic()  # wall time of the device's last timestamp reset
@@ -95,6 +103,8 @@ class FakeCamera:
 
     # the registers
     def read(self, module: int, param: int) -> int:
+        if (module, param) in ((pr.MUX, pr.MUX_STAT_DVS_DROPPED), (pr.MUX, pr.MUX_STAT_DVS_DROPPED + 1)):
+            return self.dropped >> 32 if param == pr.MUX_STAT_DVS_DROPPED else self.dropped & 0xFFFFFFFF
         return self.identity.get((module, param), self.registers.get((module, param), 0))
 
     def write(self, module: int, param: int, value: int) -> None:
@@ -149,7 +159,7 @@ class FakeCamera:
             self._stream_us = t_imu
             chunks.append(imu_words(IMU_SCALE_DVX if self.dvx else IMU_SCALE_DAVIS, _still_imu()))
             self._next_imu_us = t_imu + IMU_PERIOD_US
-        chunks.append(self._encode(events))
+        chunks.append(self._fit(events, 2 * sum(len(c) for c in chunks)))
         self._queue += b"".join(c.astype("<u2").tobytes() for c in chunks)
         self._sent_us = now_us
 
@@ -171,6 +181,21 @@ class FakeCamera:
             x0, y0, x1, y1 = (r((pr.DVS, a), 0) for a in pr.DVS_ROI)
         keep = (events["x"] >= x0) & (events["x"] <= x1) & (events["y"] >= y0) & (events["y"] <= y1)
         return events[keep]
+
+    def _fit(self, events: np.ndarray, queued: int) -> np.ndarray:
+        """The words of the events the FIFO has room for, after `queued` more bytes: the ones beyond are dropped
+        and counted where the device drops on a stall (DAVIS); a DVXplorer slows its readout instead (all kept)."""
+        self.generated += len(events)
+        room = self.fifo_bytes - len(self._queue) - queued
+        state = self._stream_us
+        words = self._encode(events)
+        drops = self.registers.get((pr.MUX, pr.MUX_DROP_DVS)) == 1
+        if not drops or 2 * len(words) <= room or not len(events):
+            return words
+        keep = max(int(len(events) * max(room, 0) / (2 * len(words))), 0)
+        self._stream_us = state
+        self.dropped += len(events) - keep
+        return self._encode(events[:keep])
 
     def _encode(self, events: np.ndarray) -> np.ndarray:
         words, self._stream_us = encode(events, self.dvx, self._stream_us)

@@ -56,6 +56,40 @@ DAVIS240_BIASES = {0: 0x427F, 1: 0x5FFF, 2: 0x400F, 3: 0x5B9B, 4: 0x573B, 5: 0x6
 # DAVIS bias sensitivity presets: ONBN (11) and OFFBN (12) codes moved away from (or towards) DIFFBN
 DAVIS_SENSITIVITY = {"low": (0x5FFF, 0x400F), "default": (0x5FFF, 0x401F), "high": (0x5A4F, 0x427F)}
 
+# DVXplorer sensor power-up (section 4.1 A, libcaer 3.3.15): raw register, value
+DVX_SENSOR_INIT = ((0x000D, 0x24), (0x000F, 0x07), (0x0010, 0xFF), (0x0013, 0x03), (0x0014, 0x7F), (0x0015, 0x00),
+                   (0x3011, 0xA0), (0x3019, 0x00), (0x301E, 0x01), (0x3067, 0x80), (0x3255, 0x0C), (0x3266, 0x08),
+                   (0x3235, 0x03), (0x3236, 0xE7), (0x3234, 49), (0x323D, 50), (0x3243, 50), (0x3247, 50),
+                   (0x3259, 50), (0x3600, 0x01))
+# DVXplorer default readout (section 4.1 B), written while the readout is stopped: trigger mode, global reset
+# during readout and fixed read time off, the area-blocking masks, timing (T_ED 2 us, GRS 1 us, the select
+# timings, NEXT_SEL 15 with MAX_EVENT_NUM 10, NEXT_GH 4, READ_FIXED 45000) and the activity decision bypassed
+DVX_READOUT = ((0x3260, 0), (0x3248, 0), (0x325C, 0),
+               *((0x3205 + 2 * i + k, v) for i in range(20) for k, v in ((0, 0x7F), (1, 0xFF))),
+               (0x3240, 0), (0x3241, 0), (0x3242, 2), (0x3244, 0), (0x3245, 0), (0x3246, 0), (0x3256, 0),
+               (0x3257, 0), (0x3258, 1), (0x323C, 4), (0x324C, 6), (0x324E, 4), (0x324F, 6), (0x3253, 8),
+               (0x3254, 10), (0x3261, 0), (0x3262, 15), (0x3251, 10), (0x324B, 4), (0x325D, 0xAF), (0x325E, 0xC8),
+               (0x3500, 1), (0x3501, 0x01), (0x3502, 0x2C), (0x3503, 0x00), (0x3504, 0x14), (0x3505, 1),
+               (0x3506, 3), (0x3513, 0x01), (0x3514, 0x2C))
+# DVXplorer read-modify-write registers (section 4.1 B): register, bits set, bits cleared. Global hold on, global
+# reset off; no flatten, ON-only or OFF-only; subsampling and area blocking bypassed (disable bits)
+DVX_UPDATES = ((0x3255, 0x01, 0x02), (0x3067, 0x00, 0x70), (0x3200, 0x06, 0x00))
+DVX_DUAL_BINNING, DVX_SUBSAMPLE = 0x3202, 0x3204
+# IMU defaults (module 3 params): DVXplorer BMI160 800 Hz, +-4 g, +-500 deg/s; DAVIS MPU +-4 g, +-500 deg/s
+DVX_IMU = ((5, 6), (6, 2), (7, 1), (8, 5), (9, 2), (10, 2))
+DAVIS_IMU = ((5, 0), (6, 1), (7, 1), (10, 1))
+# DAVIS chip configuration (module 5 params >= 128, section 4.4 B)
+DAVIS_CHIP = ((128, 0), (129, 0), (130, 0), (131, 0), (132, 0), (133, 0), (134, 0), (135, 0), (136, 1), (137, 0),
+              (138, 1), (139, 0), (140, 0), (141, 0))
+DAVIS_CHIP_346 = ((143, 1), (144, 0))  # DAVIS128/208/346/640 only
+# DVS feature flags (module 1, read-only) and the settings each gets when present (section 4.4 B)
+DVS_HAS_PIXEL_FILTER, DVS_HAS_BA_FILTER, DVS_HAS_ROI_FILTER, DVS_HAS_SKIP_FILTER, DVS_HAS_POLARITY_FILTER = (
+    10, 30, 40, 50, 60)
+DVS_BA_FILTER = ((31, 1), (32, 8), (33, 0), (34, 1))  # background activity 2 ms on, refractory off
+DVS_SKIP_FILTER = ((51, 0), (52, 5))
+DVS_POLARITY_FILTER = ((61, 0), (62, 0), (63, 0))
+EXT_HAS_GENERATOR = 10
+
 # DAVIS chip ids (SYSINFO 1) -> model; DVXplorer: 20 full, 19 Lite
 DAVIS_CHIPS = {0: "DAVIS240A", 1: "DAVIS240B", 2: "DAVIS240C", 3: "DAVIS128", 4: "DAVIS346A", 5: "DAVIS346",
                6: "DAVIS640", 7: "DAVIS640H", 8: "DAVIS208", 9: "DAVIS346BSI"}

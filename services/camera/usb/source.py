@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import usb.backend
+import usb.core
 
 from services.camera.formats import Calibration, FormatError
 from services.camera.usb.driver import UsbCamera, UsbError, backend
@@ -19,6 +20,7 @@ from services.messages import EVENT_DTYPE
 
 log = logging.getLogger(__name__)
 RETRY_S = 1.0
+POLL_S = 1.0  # the device's drop counter is read this often
 
 
 class UsbSource:
@@ -41,6 +43,9 @@ class UsbSource:
         self._last_us = -1
         self._imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._retry_at: float | None = None
+        self._poll_at = 0.0
+        self.device_dropped = 0  # DVS events the camera dropped (its USB FIFO full), over every session
+        self._session_dropped = 0
 
     def advance(self, until_us: int) -> np.ndarray:
         """Every event that arrived (a live camera has none ahead of now)."""
@@ -50,6 +55,8 @@ class UsbSource:
         if self.camera.failure is not None:
             self._reconnect()
             return np.zeros(0, EVENT_DTYPE)
+        if time.monotonic() >= self._poll_at:
+            self._poll_device()
         parts = []
         for d in self.camera.read():
             if d.resets:  # a new epoch from `reset_at` on: times go on from the last one
@@ -61,6 +68,26 @@ class UsbSource:
             if len(d.imu_t):
                 self._imu.append((d.imu_t + self._offset_us, d.gyro, d.accel))
         return np.concatenate(parts) if parts else np.zeros(0, EVENT_DTYPE)
+
+    def _poll_device(self) -> None:
+        """Reads the camera's count of events it dropped; a rise is warned about."""
+        self._poll_at = time.monotonic() + POLL_S
+        try:
+            count = self.camera.device_dropped()
+        except usb.core.USBError:
+            return  # unplugged: the reader thread tells
+        if count > self._session_dropped:
+            log.warning("%s: the camera dropped %d events (its USB buffer was full: the host read too slowly)",
+                        self.name, count - self._session_dropped)
+            self.device_dropped += count - self._session_dropped
+            self._session_dropped = count
+
+    def health(self) -> dict[str, object]:
+        """What the camera service reports in its status: the link's state and every count of lost data."""
+        cam = self.camera
+        return {"usb_state": "streaming" if cam.failure is None else "unplugged",
+                "usb_host_dropped_events": cam.dropped_events, "usb_device_dropped_events": self.device_dropped,
+                "usb_bad_words": cam.bad_words}
 
     def _shifted(self, events: np.ndarray) -> np.ndarray:
         if len(events):
@@ -84,7 +111,7 @@ class UsbSource:
             self.camera.failure = "not back yet"
             return
         log.info("%s: reconnected", self.name)
-        self._offset_us, self._retry_at = self._last_us + 1, None
+        self._offset_us, self._retry_at, self._session_dropped = self._last_us + 1, None, 0
 
     def imu(self, since_us: int, until_us: int):  # noqa: ANN201 - ImuSamples | None
         if not self._imu:
