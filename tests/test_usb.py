@@ -346,3 +346,16 @@ def test_a_davis_whose_host_reads_too_slowly_drops_events_and_the_count_is_told(
     assert source.device_dropped > 0 and "the camera dropped" in caplog.text
     assert source.health()["usb_device_dropped_events"] == source.device_dropped
     assert cam.dropped >= source.device_dropped  # told as the device counts them, none invented
+
+
+def test_a_timestamp_reset_midway_starts_a_new_epoch_and_times_go_on_rising() -> None:
+    cam = _fake(events=lambda since, until: _events([(until, 3, 4, 1)]))
+    source = UsbSource("usb", backend_=FakeBackend([cam]))
+    try:
+        before = _advance_until(source, lambda ev: len(ev) > 0 and ev["t"][-1] > 200_000)
+        cam.write(pr.MUX, pr.MUX_TS_RESET, 1)  # as a master camera's reset arrives over the sync cable
+        after = np.concatenate([_advance_until(source, lambda ev: len(ev) > 0) for _ in range(5)])
+    finally:
+        source.close()
+    assert after["t"][0] > before["t"][-1] and np.all(np.diff(after["t"]) >= 0)
+    assert after["t"][0] - before["t"][-1] < 100_000  # the new epoch follows on, not from 0
