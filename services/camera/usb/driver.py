@@ -2,9 +2,12 @@
 
 `discover` lists the cameras plugged in, with what stops one from opening (permissions, firmware).
 `UsbCamera` opens one (by serial), checks its versions, sends its configuration and start sequence,
-and reads the bulk stream on a thread of its own with large reads, decoding there (numba releases
-the GIL); the buffers wait in a bounded queue, and a consumer too slow for them makes them dropped
-and counted, never silently. Data before the timestamp reset sent at start is discarded (it may be
+and reads the bulk stream on a thread of its own with large reads, back to back (the reference's
+pitfall 1: the camera's FIFO overflows when the host leaves gaps), handing each buffer to a decoding
+thread (numba releases the GIL). A decoder that falls behind blocks the reader once `RAW_BUFFERS`
+wait, so the camera's own FIFO fills and it drops and counts (`device_dropped`); decoded buffers
+wait for their consumer in a bounded queue too, and one too slow for them makes them dropped and
+counted. Nothing is lost silently. Data before the timestamp reset sent at start is discarded (it may be
 left over from an earlier session). An unplugged camera ends the thread with `failure` set.
 """
 
@@ -29,6 +32,7 @@ log = logging.getLogger(__name__)
 
 READ_BYTES = 1 << 17  # 128 KiB bulk reads, a multiple of every wMaxPacketSize
 READ_TIMEOUT_MS = 100
+RAW_BUFFERS = 1024  # read, waiting to be decoded
 QUEUE_BUFFERS = 4096  # some 4 s of the ~1 ms buffers a camera sends (early-packet delay) before any is dropped
 FAKE_ENV = "ETAM_FAKE_USB"  # MODEL[:SERIAL],... : fake cameras instead of the USB bus (tests, demos)
 UDEV_HINT = ("no permission to open it: install the udev rule (sudo cp deploy/udev/65-etam-inivation.rules "
@@ -147,7 +151,8 @@ class UsbCamera:
                  bias: str = "default", roi: tuple[int, int, int, int] | None = None) -> None:
         self.serial_wanted, self.backend, self.bias, self.roi = serial, backend_, bias, roi
         self._queue: queue.Queue[Decoded] = queue.Queue(QUEUE_BUFFERS)
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
+        self._raw: queue.Queue[bytes | None] = queue.Queue(RAW_BUFFERS)
         self._running = threading.Event()
         self.failure: str | None = None  # why streaming stopped on its own (unplugged)
         self.dropped_buffers = self.dropped_events = self.bad_words = 0
@@ -335,8 +340,11 @@ class UsbCamera:
         self.dev.clear_halt(pr.EP_DATA)
         self._synced = False
         self._running.set()
-        self._thread = threading.Thread(target=self._read_loop, name=f"usb-{self.info.serial}", daemon=True)
-        self._thread.start()
+        self._raw = queue.Queue(RAW_BUFFERS)
+        self._threads = [threading.Thread(target=loop, name=f"usb-{self.info.serial}-{loop.__name__[1:]}", daemon=True)
+                         for loop in (self._read_loop, self._decode_loop)]
+        for thread in self._threads:
+            thread.start()
         if not self.dvx:
             self.write(pr.MUX, pr.MUX_RUN_CHIP, 1)
             time.sleep(0.2)  # biases settle
@@ -364,7 +372,18 @@ class UsbCamera:
                 self.failure = ("the camera was unplugged (or its cable failed)" if gone else f"USB read failed: {exc}")
                 log.error("camera %s: %s", self.info.serial, self.failure)
                 break
-            self._accept(self.decoder.decode(view[:n]))
+            chunk = bytes(view[:n])
+            while self._running.is_set():
+                try:
+                    self._raw.put(chunk, timeout=READ_TIMEOUT_MS / 1e3)
+                    break
+                except queue.Full:  # the decoder is behind: the camera's FIFO takes the wait
+                    continue
+        self._raw.put(None)  # the decoder ends after what was read
+
+    def _decode_loop(self) -> None:
+        while (chunk := self._raw.get()) is not None:
+            self._accept(self.decoder.decode(chunk))
 
     def _accept(self, d: Decoded) -> None:
         self.bad_words += d.dropped
@@ -407,9 +426,9 @@ class UsbCamera:
                 self._stop_all()
         finally:
             self._running.clear()
-            if self._thread is not None:
-                self._thread.join(timeout=2)
-                self._thread = None
+            for thread in self._threads:
+                thread.join(timeout=2)
+            self._threads = []
 
     def close(self) -> None:
         """Stops, puts the sensor back into reset and releases the camera."""
