@@ -275,12 +275,24 @@ class Service:
         self._inputs.append(inp)
         return inp
 
-    async def query(self, keyexpr: str, expect: type[Message], timeout_s: float = 2.0) -> list[tuple[str, Message]]:
-        """Ask every queryable on `keyexpr` (off the loop); the replies that decode, with their keys."""
+    def unsubscribe(self, inp: Input) -> None:
+        """End a subscription made with `subscribe` (its iteration stops); its counts leave the Stats."""
+        inp.close()
+        if inp.subscriber is not None:
+            inp.subscriber.undeclare()
+            inp.subscriber = None
+        self._inputs.remove(inp)
+        self._counters.remove(inp.counter)
+
+    async def query(self, keyexpr: str, expect: type[Message], timeout_s: float = 2.0,
+                    request: Message | None = None) -> list[tuple[str, Message]]:
+        """Ask every queryable on `keyexpr` (off the loop), with `request` as the payload (a Command);
+        the replies that decode, with their keys."""
+        payload = request.encode() if request is not None else None
 
         def ask() -> list[tuple[str, Message]]:
             out = []
-            for reply in self._session().get(keyexpr, timeout=timeout_s):
+            for reply in self._session().get(keyexpr, payload=payload, timeout=timeout_s):
                 if reply.ok is None:
                     continue
                 try:

@@ -331,20 +331,31 @@ def test_unknown_sources_are_named() -> None:
         open_sources("recording.aedat4")
 
 
-def test_dashboard_table_lists_services_keys_and_losses() -> None:
+def test_dashboard_table_lists_services_keys_losses_and_flags() -> None:
     from services.messages import Stats
-    from web.render import services_markdown
+    from web.health import Health
 
     row = {"key": "etam/r/camera/cam0/events", "dir": "out", "messages": 10, "events": 5, "msg_rate": 1000.0,
            "event_rate": 2.5e5, "dropped": 0, "skipped": 0, "malformed": 0, "latency_p50_ms": None,
            "latency_p99_ms": None}
     sub = {**row, "key": "etam/r/camera/*/events", "dir": "in", "dropped": 7, "malformed": 3, "latency_p99_ms": 1.25}
-    stats = {"camera/cam0": Stats(service="camera", name="cam0", cpu_percent=50, rss_bytes=2**20 * 100, keys=[row]),
-             "tracker/objects": Stats(service="tracker", name="objects", keys=[sub])}
-    text = services_markdown(stats, now_s=10.0, seen_s={"camera/cam0": 9.5, "tracker/objects": 1.0})
+    health = Health()
+    health.on_stats(Stats(service="camera", name="cam0", cpu_percent=50, rss_bytes=2**20 * 100, keys=[row]), 9.5)
+    health.on_stats(Stats(service="tracker", name="objects", keys=[{**sub, "dropped": 2, "malformed": 0}]), 0.5)
+    health.on_stats(Stats(service="tracker", name="objects", keys=[sub]), 1.0)
+    text = health.markdown(now_s=10.0)
     assert "| → events | 1000 | 250.0k | 0 | 0 |  |" in text
     assert "| ← camera/\\*/events | 1000 | 250.0k | 7 | 3 | 1.2 |" in text
-    assert "**tracker/objects** · 0% cpu · 0 MB · **silent**" in text and "camera/cam0** · 50% cpu · 100 MB |" in text
+    assert "🟢 **camera/cam0** · 50% cpu · 100 MB |" in text
+    assert "🔴 **tracker/objects** · 0% cpu · 0 MB · **silent, dropping (5 in 1 s), malformed input (3 in 1 s)**" in text
+    health.on_liveliness("etam/r/camera/cam0/alive", False, 10.0)
+    text = health.markdown(now_s=10.5)
+    assert "🔴 **camera/cam0** · 50% cpu · 100 MB · **gone** |" in text and "→ events" not in text
+    health.sample(10.5)
+    t, rate, p99 = health.series()
+    assert rate[-1] == 0.0 and p99[-1] == 0.0  # the gone and the silent count for nothing
+    health.forget(10.5 + 31)
+    assert not health.services
 
 
 def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:

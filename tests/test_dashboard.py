@@ -1,47 +1,151 @@
-"""The dashboard in a real headless Chromium: live services table, event image, 3D canvas."""
+"""The dashboard of a running `etam up` in a real headless Chromium, checked from its pixels: the map
+point cloud in the 3D view, the live event image with boxes, the health table, and two controls (pause
+freezes the view; reset map empties the map)."""
 
 from __future__ import annotations
 
 import re
 import subprocess
+import threading
 import time
 
 import cv2
 import numpy as np
 import pytest
 
+from services.messages import Tracks
 from tests.browser import CHROMIUM, Browser
-from tests.conftest import ROOT, etam_argv, free_port, wait_for
+from tests.conftest import ROOT, client_session, etam_argv, free_port, wait_for
+from web.render import track_colour
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")]
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(
+    CHROMIUM is None, reason="chromium is not installed (.ci/run installs it; or: apt-get install chromium)",
+)]
+
+PLUGIN_BOX = (60, 50, 120, 80)  # x, y, w, h (px) of the plug-in's one track, id 7
+MAP_POINTS = 300  # the semi-dense map of sim:6dof grows by 100-300 points a keyframe, one every 1-3 s
+IMAGES = "Array.from(document.images).filter(i => i.src.startsWith('blob:') && i.naturalWidth >= 692)"
 
 
-def test_dashboard_shows_live_services_events_and_boxes(rig: str, tmp_path) -> None:  # noqa: ANN001
+def _publish_plugin_tracks(endpoint: str, rig: str, stop: threading.Event) -> None:
+    """A plug-in as any user would write one: Tracks on its own key, which the dashboard has never heard of."""
+    with client_session(endpoint) as session:
+        pub = session.declare_publisher(f"etam/{rig}/plugin/boxes/tracks")
+        seq = 0
+        while not stop.is_set():
+            msg = Tracks.from_boxes(seq, [7], [PLUGIN_BOX], xyz=np.array([[0.3, 0.2, 2.0]], np.float32))
+            msg.seq = seq
+            pub.put(msg.encode())
+            seq += 1
+            stop.wait(0.1)
+        pub.undeclare()
+
+
+def _rect(browser: Browser, js_element: str) -> tuple[int, int, int, int]:
+    """Where an element is on the page (x, y, w, h); the event image's element is renewed with each frame."""
+    r = wait_for(lambda: browser.evaluate(f"(() => {{ const e = {js_element}; if (!e) return null; "
+                                          "const r = e.getBoundingClientRect(); "
+                                          "return r.width > 0 ? [r.left, r.top, r.width, r.height] : null; })()"),
+                 10, f"the element {js_element}")
+    return tuple(int(round(v)) for v in r)
+
+
+def _shot(browser: Browser) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(browser.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None
+    return img[..., ::-1]  # RGB
+
+
+def _crop(img: np.ndarray, rect: tuple[int, int, int, int]) -> np.ndarray:
+    x, y, w, h = rect
+    return img[y:y + h, x:x + w].astype(np.int16)
+
+
+def _vivid(img: np.ndarray) -> np.ndarray:
+    """Where the colour is saturated (the point cloud's colour map; the grid, the page and the text are grey)."""
+    hsv = cv2.cvtColor(np.ascontiguousarray(img.astype(np.uint8)), cv2.COLOR_RGB2HSV)
+    return (hsv[..., 1] > 120) & (hsv[..., 2] > 60)
+
+
+def _hue_distance(pixels: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
+    """Hue difference (OpenCV's 0-180 scale) of each pixel from `rgb`; 90 for pixels without colour (a thin
+    line in a downscaled image keeps its hue but not its brightness)."""
+    hsv = cv2.cvtColor(np.ascontiguousarray(pixels.reshape(1, -1, 3).astype(np.uint8)), cv2.COLOR_RGB2HSV)[0]
+    ref = int(cv2.cvtColor(np.uint8([[rgb]]), cv2.COLOR_RGB2HSV)[0, 0, 0])
+    d = np.abs(hsv[:, 0].astype(int) - ref)
+    return np.where(hsv[:, 1] > 80, np.minimum(d, 180 - d), 90)
+
+
+def _click(browser: Browser, text: str) -> None:
+    assert browser.evaluate(f"(() => {{ const b = Array.from(document.querySelectorAll('button'))"
+                            f".find(b => b.innerText.includes({text!r})); if (b) b.click(); return !!b; }})()"), text
+
+
+@pytest.mark.timeout(420)
+def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tmp_path) -> None:  # noqa: ANN001
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(
-        etam_argv("up", "--rig", rig, "--web-port", str(free_port()), "--listen", f"tcp/127.0.0.1:{free_port()}",
-                  "--duration", "90", "--log-level", "WARNING"),
+        etam_argv("up", "--source", "sim:6dof", "--rig", rig, "--web-port", str(free_port()), "--listen", endpoint,
+                  "--duration", "300", "--log-level", "WARNING"),
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )
+    stop = threading.Event()
+    plugin = threading.Thread(target=_publish_plugin_tracks, args=(endpoint, rig, stop), daemon=True)
     try:
         line = proc.stdout.readline()
         url = re.search(r"http://\S+", line)
         assert url, f"no dashboard URL printed: {line!r}"
+        plugin.start()
         with Browser() as browser:
             browser.goto(url.group(0))
             text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
-                            and all(s in t for s in ("camera/cam0", "tracker/objects", "web/web")) and t,
-                            60, "all three services in the dashboard table", period_s=1.0)
-            assert f"ETAM · {rig}" in text and "→ tracks" in text and "→ events" in text
-            assert browser.evaluate("document.querySelectorAll('canvas').length") >= 1  # the 3D scene
-            # the live event image: on a clean clone its first frame may come long after the table (kernels compile)
-            wait_for(lambda: browser.evaluate("Array.from(document.images).some(i => i.src.startsWith('blob:') "
-                                              "&& i.naturalWidth >= 346)"),
-                     60, "the live event image", period_s=0.5)
+                            and all(s in t for s in ("camera/cam0", "tracker/objects", "mapper/map", "web/web"))
+                            and t, 90, "all four services in the health table", period_s=1.0)
+            assert f"ETAM · {rig}" in text and "→ tracks" in text and "→ events" in text and "→ points" in text
+            # a clean clone compiles the simulator's and the mapper's kernels first
+            points = wait_for(lambda: int(m.group(1).replace(",", "")) if (m := re.search(
+                r"([\d,]+) points shown", browser.evaluate("document.body.innerText") or "")) and int(
+                m.group(1).replace(",", "")) >= MAP_POINTS else 0, 150, f"{MAP_POINTS} map points", period_s=1.0)
+            wait_for(lambda: browser.evaluate(f"{IMAGES}.length"), 30, "the live event image", period_s=0.5)
+            time.sleep(3)  # the software renderer draws the scene once the cloud has arrived
+            image = _rect(browser, f"{IMAGES}[0]")
+            canvas = _rect(browser, "document.querySelector('canvas')")
+            scene = (canvas[0], canvas[1], image[0] - 20 - canvas[0], canvas[3])  # left of the control panel
+            first, second = _shot(browser), _shot(browser)
+            (tmp_path / "dashboard.png").write_bytes(cv2.imencode(".png", first[..., ::-1])[1].tobytes())
+
+            # the event image: events in polarity colours, and the plug-in's box drawn in id 7's colour
+            ev = _crop(first, image)
+            scale = image[2] / 692
+            assert np.mean(np.abs(ev - 30).max(axis=2) > 60) > 0.01, "no events drawn"
+            x, y, w, h = (np.array(PLUGIN_BOX) * 2 * scale).astype(int)
+            top = max((ev[row, x + 4:x + w - 4] for row in (y - 1, y, y + 1)), key=lambda px: px.sum())
+            assert np.median(_hue_distance(top, track_colour(7))) < 10, "the plug-in's box is not drawn"
+            assert np.abs(_crop(second, image) - ev).mean() > 1.0, "the event image does not change"
+
+            # pause: the whole view freezes (the event image, the camera moving in the 3D view)
+            _click(browser, "Pause view")
+            wait_for(lambda: "Resume view" in (browser.evaluate("document.body.innerText") or ""), 10, "paused")
+            time.sleep(2)
+            paused, later = _shot(browser), _shot(browser)
+            assert np.abs(_crop(later, image) - _crop(paused, image)).mean() < 0.5, "pause did not freeze the image"
+            assert np.abs(_crop(later, scene) - _crop(paused, scene)).mean() < 0.5, "pause did not freeze the scene"
+
+            # reset map (while paused, so nothing else moves): the colour-mapped points go, nothing comes
+            _click(browser, "Reset map")
+            wait_for(lambda: "reset done" in (browser.evaluate("document.body.innerText") or ""), 30, "the reset")
+            wait_for(lambda: "No map yet" in (browser.evaluate("document.body.innerText") or ""), 10, "an empty map")
             time.sleep(3)
-            png = browser.screenshot()
-        (tmp_path / "dashboard.png").write_bytes(png)
-        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-        assert img is not None and img.std() > 10  # not a blank page
+            before, after = _vivid(_crop(later, scene)), _vivid(_crop(_shot(browser), scene))
+            gone, came = np.count_nonzero(before & ~after), np.count_nonzero(after & ~before)
+            assert gone > 300, f"no point cloud drawn, or reset map left it ({gone} vivid pixels went)"
+            assert came < 0.1 * gone, f"{came} vivid pixels appeared on reset"
+            _click(browser, "Resume view")
+            time.sleep(2)
+            assert np.abs(_crop(_shot(browser), image) - _crop(later, image)).mean() > 1.0, "resume did not resume"
+        assert points >= MAP_POINTS
     finally:
+        stop.set()
+        plugin.join(10)
         proc.terminate()
         proc.wait(20)

@@ -1,4 +1,4 @@
-"""Pictures for the dashboard: event frames with boxes, the service table (pure numpy / cv2).
+"""Pictures for the dashboard: event frames with boxes, colour maps, any Image made viewable (pure numpy / cv2).
 
 Images here are RGB, as the browser shows them."""
 
@@ -7,8 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services import keys
-from services.messages import Stats, Tracks
+from services.messages import Tracks
 
 # bright enough in luma to survive JPEG's halved chroma resolution
 ON_RGB = np.array([255, 120, 110], np.float32)  # light red for ON
@@ -31,62 +30,52 @@ def event_frame(events: np.ndarray, width: int, height: int) -> np.ndarray:
     return img.astype(np.uint8)
 
 
-def _colour(ident: int) -> tuple[int, int, int]:
+def track_colour(ident: int) -> tuple[int, int, int]:
     hue = (ident * 47) % 180
     rgb = cv2.cvtColor(np.uint8([[[hue, 200, 255]]]), cv2.COLOR_HSV2RGB)[0, 0]
     return int(rgb[0]), int(rgb[1]), int(rgb[2])
 
 
-def draw_tracks(img: np.ndarray, tracks: Tracks | None, truth: Tracks | None, scale: int = 2) -> np.ndarray:
+def draw_tracks(img: np.ndarray, tracks: list[Tracks], truth: list[Tracks], scale: int = 2) -> np.ndarray:
     """Upscale `img` and draw truth boxes (thin white) and tracked boxes (coloured by id, labelled)."""
     out = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
-    if truth is not None:
-        for box in truth.box:
+    for msg in truth:
+        for box in msg.box:
             x, y, w, h = (box * scale).astype(int)
             cv2.rectangle(out, (x, y), (x + w, y + h), (235, 235, 235), 1)
-    if tracks is not None:
-        for ident, box, state in zip(tracks.id, tracks.box, tracks.state, strict=True):
-            if state == 0:
+    for msg in tracks:
+        for ident, box, state in zip(msg.id, msg.box, msg.state, strict=True):
+            if state == Tracks.TENTATIVE:
                 continue
             x, y, w, h = (box * scale).astype(int)
-            colour = _colour(int(ident))
-            cv2.rectangle(out, (x, y), (x + w, y + h), colour, 1 if state == 2 else 2)
+            colour = track_colour(int(ident))
+            cv2.rectangle(out, (x, y), (x + w, y + h), colour, 1 if state == Tracks.LOST else 2)
             label = f"#{ident} {STATE_NAMES.get(int(state), '')}".strip()
             cv2.putText(out, label, (x, max(y - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return out
 
 
-def _si(value: float) -> str:
-    for scale, suffix in ((1e6, "M"), (1e3, "k")):
-        if value >= scale:
-            return f"{value / scale:.1f}{suffix}"
-    return f"{value:.0f}"
+def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """RGB uint8 per value on the turbo map, `lo` blue to `hi` red."""
+    level = np.clip((np.asarray(values, np.float32) - lo) * (255.0 / max(hi - lo, 1e-9)), 0, 255).astype(np.uint8)
+    return cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)[:, ::-1].copy()
 
 
-def _short_key(key: str, who: str) -> str:
-    """A service's own key as its topic (``events``); any other without ``etam/<rig>/``."""
-    parts = keys.parse(key)
-    if parts is not None and f"{parts[1]}/{parts[2]}" == who:
-        return parts[3]
-    return "/".join(key.split("/")[2:]).replace("*", "\\*")
-
-
-def services_markdown(stats: dict[str, Stats], now_s: float, seen_s: dict[str, float]) -> str:
-    """A markdown table of live services: a line per service, then its inputs and outputs with
-    rates, lost messages, malformed ones and latency."""
-    if not stats:
-        return "*No services seen yet.*"
-    lines = ["| key | msg/s | ev/s | lost | bad | p99 ms |", "|---|---:|---:|---:|---:|---:|"]
-    for who in sorted(stats):
-        st = stats[who]
-        silent = " · **silent**" if now_s - seen_s.get(who, now_s) > 3 else ""
-        lines.append(f"| **{who}** · {st.cpu_percent:.0f}% cpu · {st.rss_bytes / 2**20:.0f} MB{silent} ||||||")
-        for row in st.keys:
-            p99 = row.get("latency_p99_ms")
-            arrow = "→" if row["dir"] == "out" else "←"
-            lines.append(
-                f"| {arrow} {_short_key(str(row['key']), who)} "
-                f"| {row['msg_rate']:.0f} | {_si(row['event_rate'])} | {row['dropped']} | {row['malformed']} "
-                f"| {'' if p99 is None else f'{p99:.1f}'} |"
-            )
-    return "\n".join(lines)
+def viewable(pixels: np.ndarray) -> np.ndarray:
+    """Any Image's pixels as RGB uint8: colour (BGR) as is, grey as grey, 16-bit stretched to its range,
+    float (depth, time surfaces) on the colour map with unknown (NaN) black."""
+    if pixels.ndim == 3:
+        return np.ascontiguousarray(pixels[..., 2::-1]).astype(np.uint8)
+    if pixels.dtype == np.uint8:
+        return np.repeat(pixels[..., None], 3, axis=2)
+    values = pixels.astype(np.float32)
+    known = np.isfinite(values)
+    if not known.any():
+        return np.zeros((*pixels.shape, 3), np.uint8)
+    lo, hi = np.percentile(values[known], (1, 99))
+    if pixels.dtype == np.uint16:  # a 16-bit PNG (the mosaic): grey levels
+        grey = np.clip((values - lo) * (255.0 / max(hi - lo, 1e-9)), 0, 255).astype(np.uint8)
+        return np.repeat(grey[..., None], 3, axis=2)
+    out = colormap(np.where(known, values, lo).ravel(), float(lo), float(hi)).reshape(*pixels.shape, 3)
+    out[~known] = 0
+    return out
