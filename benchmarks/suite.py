@@ -8,8 +8,8 @@ from collections.abc import Callable
 
 import psutil
 
-from benchmarks import (filters, latency, mapping, mosaic, odometry, playback, readers, tracking, transport, usb,
-                        writers)
+from benchmarks import (dashboard, filters, latency, mapping, mosaic, odometry, playback, readers, tracking, transport,
+                        usb, writers)
 
 
 def _simulator(quick: bool) -> list[dict]:
@@ -46,6 +46,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[dict]]] = {
     "latency": latency.run,
     "simulator": _simulator,
     "usb": usb.run,
+    "dashboard": dashboard.run,
 }
 
 
@@ -168,6 +169,15 @@ def format_results(results: dict) -> str:
         lines.append(f"usb decode {row['model']:>9}: {row['events_per_s'] / 1e6:6.1f} Mev/s on one core "
                      f"({row['mb_per_s']:.0f} MB/s, {row['bytes_per_event']:.2f} bytes an event, "
                      f"{row['events']} events)")
+    for row in results.get("dashboard", []):
+        if "error" in row:
+            lines.append(f"{row['stage']} ({row['source']}): {row['error']}")
+            continue
+        lines.append(f"{row['stage']} ({row['source']}), {row['clients']} client: {row['cpu_percent_of_core']:.1f} % "
+                     f"of a core, event image {row['image_updates_per_s']:.1f} updates/s at the client "
+                     f"({row['frames_per_s']:.1f}/s sent), {row['points_shown']} points shown, "
+                     f"{row['client_mb_per_s']:.2f} MB/s to the client, machine "
+                     f"{row['machine_cpu_percent']:.0f} % busy")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "
                      f"{row['realtime_factor']:.1f}x real time")

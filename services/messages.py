@@ -10,6 +10,7 @@ are decoded with ``np.frombuffer`` (no copy, read-only views). Anything malforme
 from __future__ import annotations
 
 import dataclasses
+import math
 import functools
 import re
 import threading
@@ -109,7 +110,26 @@ def _pack(body: dict[str, Any]) -> bytes:
     return b"".join(parts)
 
 
+_DTYPES: dict[Any, np.dtype] = {}  # dtypes already parsed, by their wire form (a few kinds ever travel)
+
+
 def _parse_dtype(raw: Any, where: str) -> np.dtype:
+    key = raw if isinstance(raw, str) else None
+    if isinstance(raw, (list, tuple)) and all(isinstance(item, (list, tuple)) for item in raw):
+        key = tuple(tuple(item) for item in raw)
+    try:
+        known = _DTYPES.get(key) if key is not None else None
+    except TypeError:  # unhashable entries: let the checks below name them
+        key, known = None, None
+    if known is not None:
+        return known
+    dtype = _check_dtype(raw, where)
+    if key is not None and len(_DTYPES) < 256:
+        _DTYPES[key] = dtype
+    return dtype
+
+
+def _check_dtype(raw: Any, where: str) -> np.dtype:
     if isinstance(raw, str) and _SIMPLE_DTYPE.match(raw):
         return np.dtype(raw)
     if isinstance(raw, (list, tuple)) and 0 < len(raw) <= 16:
@@ -138,7 +158,7 @@ def _decode_array(raw: Any, spec: Spec, where: str) -> np.ndarray:
     data = raw["data"]
     if not isinstance(data, (bytes, bytearray)):
         raise MessageError(f"{where}: data is not binary")
-    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    count = math.prod(shape)
     if count * dtype.itemsize != len(data):
         raise MessageError(f"{where}: {len(data)} bytes do not hold shape {shape} of {dtype}")
     if spec.dtype is not None and dtype != spec.dtype:

@@ -77,7 +77,7 @@ class Every:
     def __call__(self, now_s: float) -> bool:
         if now_s < self._next:
             return False
-        self._next = now_s + self.period_s
+        self._next = max(self._next + self.period_s, now_s)  # a late tick keeps the rate, a very late one no burst
         return True
 
 
@@ -95,7 +95,7 @@ class WebService(Service):
 
     kind = "web"
 
-    def __init__(self, options: ServiceOptions, host: str = "0.0.0.0", port: int = 8080, fps: float = 20.0) -> None:
+    def __init__(self, options: ServiceOptions, host: str = "0.0.0.0", port: int = 8080, fps: float = 24.0) -> None:
         super().__init__(options)
         self.host, self.port, self.fps = host, port, fps
         self.server: viser.ViserServer | None = None
@@ -302,24 +302,28 @@ class WebService(Service):
 
     # ------------------------------------------------------------------------------ rendering --
     async def _render_loop(self) -> None:
-        image_due, frustum_due = Every(1.0 / self.fps), Every(FRUSTUM_IMAGE_S)
+        """Ticks at `fps` on a fixed schedule (work done in a tick does not slow the rate); each view is sent
+        when its period is due."""
+        frustum_due = Every(FRUSTUM_IMAGE_S)
         markers_due, slow_due, health_due = Every(MARKERS_S), Every(SLOW_VIEWS_S), Every(HEALTH_S)
+        period = 1.0 / self.fps
+        tick = time.monotonic()
         while True:
-            await asyncio.sleep(1.0 / self.fps / 2)
+            tick = max(tick + period, time.monotonic() - period)  # behind by more than a tick: no burst
+            await asyncio.sleep(max(0.0, tick - time.monotonic()))
             now = time.monotonic()
             if health_due(now):
                 self._show_health(now)
             if self.paused:
                 continue
-            if image_due(now):
-                frame = self._event_image()
-                if frame is not None:
-                    self._image.image = frame
-                    self.status["frames"] += 1
-                    if frustum_due(now):
-                        self._show_poses(frame)
-                else:
-                    self._show_poses(None)
+            frame = self._event_image()
+            if frame is not None:
+                self._image.image = frame
+                self.status["frames"] += 1
+                if frustum_due(now):
+                    self._show_poses(frame)
+            else:
+                self._show_poses(None)
             if markers_due(now):
                 self._show_markers()
                 if self._follow.value:
@@ -364,7 +368,7 @@ class WebService(Service):
             if pose is not None:
                 frustum.position, frustum.wxyz = np.asarray(pose.p), _wxyz(pose.q)
             if frame is not None and (pose is None or pose is camera):
-                frustum.image = frame
+                frustum.image = np.ascontiguousarray(frame[::2, ::2])  # a quarter of the pixels to encode: it is small
 
     def _show_markers(self) -> None:
         """Tracked objects with a 3D position as labelled spheres, in the world by the camera's pose."""

@@ -1,0 +1,144 @@
+"""The dashboard's cost and rate in a running `etam up`, with one browser-like client connected.
+
+`etam up` runs as users run it, with every service: camera, tracker, mapper and dashboard. Twice: on a
+recording of the 6-DoF scene played in real time (the camera as cheap as a real one), and on the live
+simulator `sim:6dof`, whose rendering takes a core of its own (on 2 cores the machine is then full).
+A plug-in publishes a 100k-point map on a key of its own (the simulator's semi-dense map grows by a
+few hundred points a keyframe), so the dashboard holds and shows 100k points beside the mapper's. A
+client joins the dashboard's websocket as a browser does and decodes viser's wire format: it counts
+the updates of the event image and the bytes it is sent; meanwhile the dashboard process's CPU time
+is read from the system. A real browser costs the server the same: each client gets the same stream.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import psutil
+import viser
+import zstandard
+from websockets.sync.client import connect
+
+from benchmarks import free_port, join
+from services.camera.offline import simulate
+from services.config import ZenohSettings
+from services.launcher import MAPPER_NICE
+from services.messages import Command, PointCloud, Reply, decode
+
+RIG = "benchweb"
+PLUGIN_POINTS = 100_000
+WARMUP_S = 12.0  # processes started, kernels loaded, the first keyframes mapped
+
+
+def run(quick: bool = False) -> list[dict]:
+    measure_s = 5.0 if quick else 20.0
+    with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
+        h5 = Path(tmp) / "6dof.h5"
+        simulate("6dof", h5, WARMUP_S + measure_s + 10, seed=11, progress=False)
+        return [measure(str(h5), measure_s), measure("sim:6dof", measure_s)]
+
+
+def measure(source: str, measure_s: float) -> dict:
+    endpoint, port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    common = ["--rig", RIG, "--log-level", "WARNING"]
+    rig = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--source", source, "--listen", endpoint,
+                            "--web-port", str(port), "--duration", str(WARMUP_S + measure_s + 8), *common],
+                           stdout=subprocess.DEVNULL)
+    recording = not source.startswith("sim:")
+    row: dict = {"stage": "dashboard in etam up", "source": "recording of sim:6dof" if recording else source,
+                 "clients": 1}
+    mapper = None
+    try:
+        session = join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), rig)
+        if session is None:
+            return {**row, "error": f"no router at {endpoint}"}
+        if recording:  # `etam up` maps the simulator's scenes itself; beside a recording the mapper joins
+            mapper = subprocess.Popen([sys.executable, "-m", "services.cli", "mapper", "--connect", endpoint,
+                                       "--poses", "truth", *common], stdout=subprocess.DEVNULL,
+                                      preexec_fn=lambda: os.nice(MAPPER_NICE))  # as etam up runs it
+        with session:
+            pid = _web_pid(session)
+            if pid is None:
+                return {**row, "error": "the dashboard did not answer"}
+            pts = np.random.default_rng(0).uniform((-3, -1.5, 1), (3, 1.5, 6), (PLUGIN_POINTS, 3)).astype(np.float32)
+            session.put(f"etam/{RIG}/bench/cloud/points", PointCloud(t=0, points=pts).encode())
+            client = _Client(port)
+            time.sleep(WARMUP_S)
+            psutil.cpu_percent(None)
+            proc = psutil.Process(pid)
+            frames0 = _ping(session).get("frames", 0)
+            cpu0, updates0, bytes0, t0 = sum(proc.cpu_times()[:2]), client.image_updates, client.bytes, time.monotonic()
+            time.sleep(measure_s)
+            cpu1, updates1, bytes1, t1 = sum(proc.cpu_times()[:2]), client.image_updates, client.bytes, time.monotonic()
+            status = _ping(session)
+            load = psutil.cpu_percent(None)
+            client.close()
+    finally:
+        for p in (mapper, rig):
+            if p is not None:
+                p.terminate()
+                p.wait(60)
+    wall = t1 - t0
+    return {**row, "cpu_percent_of_core": 100 * (cpu1 - cpu0) / wall,
+            "image_updates_per_s": (updates1 - updates0) / wall,
+            "frames_per_s": (status.get("frames", 0) - frames0) / wall,
+            "client_mb_per_s": (bytes1 - bytes0) / wall / 1e6, "points_shown": status.get("points_shown", 0),
+            "machine_cpu_percent": load, "seconds": wall}
+
+
+def _ping(session) -> dict:  # noqa: ANN001 - a zenoh session
+    for reply in session.get(f"etam/{RIG}/web/web/cmd", payload=Command(op="ping").encode(), timeout=3.0):
+        if reply.ok is not None:
+            msg = decode(reply.ok.payload.to_bytes(), Reply)
+            if msg.ok:
+                return msg.result or {}
+    return {}
+
+
+def _web_pid(session, wait_s: float = 40.0) -> int | None:  # noqa: ANN001
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        pid = _ping(session).get("pid")
+        if pid:
+            return int(pid)
+        time.sleep(0.5)
+    return None
+
+
+class _Client:
+    """A websocket client of the dashboard, reading everything it is sent on a thread of its own."""
+
+    def __init__(self, port: int) -> None:
+        self._ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+        self._zstd = zstandard.ZstdDecompressor()
+        self.image_updates = self.bytes = self.messages = 0
+        self._image: str | None = None
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            for frame in self._ws:
+                self.bytes += len(frame)
+                size, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+                body = msgspec.msgpack.decode(self._zstd.decompress(frame[16:16 + packed], max_output_size=size))
+                for msg in body["messages"]:
+                    self.messages += 1
+                    if msg.get("type") == "GuiImageMessage" and str(msg["props"].get("label", "")).startswith("events"):
+                        self._image = msg["uuid"]
+                    elif msg.get("type") == "GuiUpdateMessage" and msg.get("uuid") == self._image:
+                        self.image_updates += 1
+        except Exception:  # noqa: BLE001 - the connection closes at the end
+            return
+
+    def close(self) -> None:
+        self._ws.close()
+        self._thread.join(5)
