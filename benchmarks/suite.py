@@ -173,10 +173,11 @@ def format_results(results: dict) -> str:
         if "error" in row:
             lines.append(f"{row['stage']} ({row['source']}): {row['error']}")
             continue
-        lines.append(f"{row['stage']} ({row['source']}), {row['clients']} client: {row['cpu_percent_of_core']:.1f} % "
-                     f"of a core, event image {row['image_updates_per_s']:.1f} updates/s at the client "
+        lines.append(f"{row['stage']} ({row['source']}), {row['clients']} client(s): "
+                     f"{row['cpu_percent_of_core']:.1f} % of a core, event image "
+                     f"{row['image_updates_per_s']:.1f} updates/s at the slowest client "
                      f"({row['frames_per_s']:.1f}/s sent), {row['points_shown']} points shown, "
-                     f"{row['client_mb_per_s']:.2f} MB/s to the client, machine "
+                     f"{row['client_mb_per_s']:.2f} MB/s to each client, machine "
                      f"{row['machine_cpu_percent']:.0f} % busy")
     for row in results.get("simulator", []):
         lines.append(f"{row['stage']:<26} {row['events_per_s'] / 1e6:6.2f} Mev/s, "

@@ -103,6 +103,7 @@ class WebService(Service):
         self.state = RigState()
         self.paused = False
         self.status["frames"] = 0  # event images sent, for benchmarks and tests
+        self.status["events_received"] = 0
         self._rigs: set[str] = {self.rig}
         self._input: Input | None = None
         self._liveliness: zenoh.Subscriber | None = None
@@ -171,6 +172,7 @@ class WebService(Service):
         packets = self.state.events.setdefault(key, collections.deque())
         self.state.sizes[key] = (msg.width, msg.height)
         packets.append((msg.stamp, msg.events))
+        self.status["events_received"] += len(msg.events)
         while packets and packets[0][0] < msg.stamp - WINDOW_MAX_MS * 1000:
             packets.popleft()
 
@@ -216,8 +218,8 @@ class WebService(Service):
         gui, scene = self.server.gui, self.server.scene
         gui.configure_theme(control_width="large", show_share_button=False)
         scene.set_up_direction("-y")  # the OpenCV camera frame: x right, y down, z forward
-        self.server.initial_camera.position = (0.0, -2.5, -4.0)  # behind and above the rig's start
-        self.server.initial_camera.look_at = (0.0, 0.0, 2.0)
+        self.server.initial_camera.position = (0.0, -1.2, -1.8)  # behind and above the rig's start
+        self.server.initial_camera.look_at = (0.0, 0.0, 3.0)
         loop = asyncio.get_running_loop()
 
         def on_loop(fn: Callable[..., None]) -> Callable[[Any], None]:  # viser's threads hand over to the loop
