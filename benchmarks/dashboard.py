@@ -1,8 +1,8 @@
 """The dashboard's cost and rate in a running `etam up`, with one browser-like client connected.
 
-`etam up` runs as users run it, with every service: camera, tracker, mapper and dashboard. Twice: on a
-recording of the 6-DoF scene played in real time (the camera as cheap as a real one), and on the live
-simulator `sim:6dof`, whose rendering takes a core of its own (on 2 cores the machine is then full).
+`etam up` runs as users run it, with every service: camera, tracker, mapper and dashboard. On a
+recording of the 6-DoF scene played in real time (`--map`: the camera as cheap as a real one), and
+on the live simulator `sim:6dof`, whose rendering takes a core of its own (2 cores are then full).
 A plug-in publishes a 100k-point map on a key of its own (the simulator's semi-dense map grows by a
 few hundred points a keyframe), so the dashboard holds and shows 100k points beside the mapper's. A
 client joins the dashboard's websocket as a browser does and decodes viser's wire format: it counts
@@ -12,7 +12,6 @@ is read from the system. A real browser costs the server the same: each client g
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import tempfile
@@ -30,7 +29,6 @@ from websockets.sync.client import connect
 from benchmarks import free_port, join
 from services.camera.offline import simulate
 from services.config import ZenohSettings
-from services.launcher import MAPPER_NICE
 from services.messages import Command, PointCloud, Reply, decode
 
 RIG = "benchweb"
@@ -49,21 +47,16 @@ def run(quick: bool = False) -> list[dict]:
 def measure(source: str, measure_s: float, clients: int = 1) -> dict:
     endpoint, port = f"tcp/127.0.0.1:{free_port()}", free_port()
     common = ["--rig", RIG, "--log-level", "WARNING"]
-    rig = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--source", source, "--listen", endpoint,
-                            "--web-port", str(port), "--duration", str(WARMUP_S + measure_s + 8), *common],
-                           stdout=subprocess.DEVNULL)
     recording = not source.startswith("sim:")
+    rig = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--source", source, "--listen", endpoint,
+                            "--web-port", str(port), "--duration", str(WARMUP_S + measure_s + 8), *common,
+                            *(("--map",) if recording else ())], stdout=subprocess.DEVNULL)
     row: dict = {"stage": "dashboard in etam up", "source": "recording of sim:6dof" if recording else source,
                  "clients": clients}
-    mapper = None
     try:
         session = join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), rig)
         if session is None:
             return {**row, "error": f"no router at {endpoint}"}
-        if recording:  # `etam up` maps the simulator's scenes itself; beside a recording the mapper joins
-            mapper = subprocess.Popen([sys.executable, "-m", "services.cli", "mapper", "--connect", endpoint,
-                                       "--poses", "truth", *common], stdout=subprocess.DEVNULL,
-                                      preexec_fn=lambda: os.nice(MAPPER_NICE))  # as etam up runs it
         with session:
             pid = _web_pid(session)
             if pid is None:
@@ -85,10 +78,8 @@ def measure(source: str, measure_s: float, clients: int = 1) -> dict:
             for v in viewers:
                 v.close()
     finally:
-        for p in (mapper, rig):
-            if p is not None:
-                p.terminate()
-                p.wait(60)
+        rig.terminate()
+        rig.wait(60)
     wall = t1 - t0
     got = [(a[0] - b[0], a[1] - b[1]) for a, b in zip(after, before, strict=True)]  # updates and bytes per client
     return {**row, "cpu_percent_of_core": 100 * (cpu1 - cpu0) / wall,

@@ -172,7 +172,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
     opts = UpOptions(
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
-        log_level=args.log_level, services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS else ())),
+        log_level=args.log_level,
+        services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS or args.map else ())),
         mapper_args=MAPPED_SIMS.get(args.source, ()),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
@@ -194,6 +195,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     for src in sources:  # a USB camera is released again for the camera service to open
         getattr(src, "close", lambda: None)()
     parse_chain([f for f in args.filter or [] if f != "undistort"], sources[0].width, sources[0].height)
+    recording = getattr(sources[0], "recording", None)
+    if args.map and args.source not in MAPPED_SIMS and (recording is None or recording.truth.poses is None):
+        raise config.ConfigError(f"--map: {args.source} has no truth poses to map with (a recording with "
+                                 "/truth/poses, or sim:6dof, sim:stereo, sim:rotation)")
     if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
         opts.tracker_args = ("--cam", "cam0")
     if args.source in EGO_SIMS:
@@ -494,6 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", default="tcp/0.0.0.0:7447", help="router endpoint (default tcp/0.0.0.0:7447)")
     p.add_argument("--web-port", type=int, default=8080, help="dashboard port (default 8080)")
     p.add_argument("--no-web", action="store_true", help="do not start the dashboard")
+    p.add_argument("--map", action="store_true",
+                   help="also run the mapper on a recording's truth poses (the simulator's 3D scenes map anyway)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds and exit 0")
     p.add_argument("--report", metavar="FILE.json", help="write per-key and per-service counts at the end")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))

@@ -202,6 +202,25 @@ def test_up_on_a_spinning_camera_closes_the_loop(monkeypatch) -> None:  # noqa: 
     assert spin_args.poses == "ego" and spin_args.build == "mosaic" and moving_args.poses == "truth"
 
 
+def test_up_maps_a_recording_with_truth_poses_when_asked(monkeypatch, tmp_path) -> None:  # noqa: ANN001
+    """`etam up --map` adds the mapper on the recording's truth poses; a source without poses is refused by name."""
+    import services.launcher
+    from services import cli
+    from services.camera.offline import simulate
+    from services.launcher import _children
+
+    h5 = tmp_path / "moving.h5"
+    simulate("6dof", h5, 0.05, progress=False)
+    started = []
+    monkeypatch.setattr(services.launcher, "up", lambda opts: started.append(opts) or 0)
+    assert cli.main(["up", "--source", str(h5), "--no-web"]) == 0
+    assert cli.main(["up", "--source", str(h5), "--no-web", "--map"]) == 0
+    plain, mapped = ({c.name: c.argv for c in _children(opts)} for opts in started)
+    assert "mapper" not in plain and mapped["mapper"][-2:] == ["--poses", "truth"]
+    assert cli.main(["up", "--source", "sim:objects", "--no-web", "--map"]) == 2
+    assert len(started) == 2
+
+
 def test_up_on_a_rig_tracks_boxes_of_its_first_camera_only(monkeypatch) -> None:  # noqa: ANN001
     """Tracks carry no camera: a tracker following both cameras of a stereo rig would put the right camera's
     boxes on the left camera's key (and do twice the work). `etam up` on a rig gives the tracker --cam cam0."""
