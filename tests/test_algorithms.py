@@ -349,6 +349,8 @@ def test_dashboard_table_lists_services_keys_losses_and_flags() -> None:
     assert "🟢 **camera/cam0** · 50% cpu · 100 MB |" in text
     flags = "silent, dropping (5 in 1 s), malformed input (3 in 1 s)"
     assert f"🔴 **tracker/objects** · 0% cpu · 0 MB · **{flags}**" in text
+    health.on_liveliness("etam/r/mapper/map/alive", True, 10.0)  # its token before its first Stats
+    assert "🔴 **mapper/map** · **no Stats yet** |" in health.markdown(now_s=10.0)
     health.on_liveliness("etam/r/camera/cam0/alive", False, 10.0)
     text = health.markdown(now_s=10.5)
     assert "🔴 **camera/cam0** · 50% cpu · 100 MB · **gone** |" in text and "→ events" not in text
@@ -356,7 +358,7 @@ def test_dashboard_table_lists_services_keys_losses_and_flags() -> None:
     t, rate, p99 = health.series()
     assert rate[-1] == 0.0 and p99[-1] == 0.0  # the gone and the silent count for nothing
     health.forget(10.5 + 31)
-    assert not health.services
+    assert list(health.services) == ["mapper/map"]  # the gone and the silent go; one holding its token stays
 
 
 def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:

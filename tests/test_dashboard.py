@@ -98,11 +98,13 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
         plugin.start()
         with Browser() as browser:
             browser.goto(url.group(0))
+            # services appear by their liveliness tokens, their keys with their first Stats (a clean clone
+            # compiles kernels first)
+            expected = ("camera/cam0", "tracker/objects", "mapper/map", "web/web", "→ tracks", "→ events", "→ points")
             text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
-                            and all(s in t for s in ("camera/cam0", "tracker/objects", "mapper/map", "web/web"))
-                            and t, 90, "all four services in the health table", period_s=1.0)
-            assert f"ETAM · {rig}" in text and "→ tracks" in text and "→ events" in text and "→ points" in text
-            # a clean clone compiles the simulator's and the mapper's kernels first
+                            and all(s in t for s in expected) and t, 120, "all four services and their keys in the "
+                            "health table", period_s=1.0)
+            assert f"ETAM · {rig}" in text
             points = wait_for(lambda: int(m.group(1).replace(",", "")) if (m := re.search(
                 r"([\d,]+) points shown", browser.evaluate("document.body.innerText") or "")) and int(
                 m.group(1).replace(",", "")) >= MAP_POINTS else 0, 150, f"{MAP_POINTS} map points", period_s=1.0)

@@ -36,7 +36,9 @@ class ServiceHealth:
         out = []
         if self.alive is False:
             out.append("gone")
-        elif self.stats is None or now_s - self.seen_s > SILENT_S:
+        elif self.stats is None:
+            out.append("no Stats yet")
+        elif now_s - self.seen_s > SILENT_S:
             out.append("silent")
         if self.stats is None:
             return out
