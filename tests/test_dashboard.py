@@ -67,6 +67,14 @@ def _vivid(img: np.ndarray) -> np.ndarray:
     return (hsv[..., 1] > 120) & (hsv[..., 2] > 60)
 
 
+def _type(browser: Browser, old: str, new: str) -> None:
+    """Replace the text of the input that holds `old` as a user typing would (React sees an input event)."""
+    assert browser.evaluate(
+        f"(() => {{ const i = Array.from(document.querySelectorAll('input')).find(e => e.value === {old!r}); "
+        "if (!i) return false; Object.getOwnPropertyDescriptor(HTMLInputElement.prototype, 'value').set"
+        f".call(i, {new!r}); i.dispatchEvent(new Event('input', {{bubbles: true}})); return true; }})()"), old
+
+
 def _hue_distance(pixels: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
     """Hue difference (OpenCV's 0-180 scale) of each pixel from `rgb`; 90 for pixels without colour (a thin
     line in a downscaled image keeps its hue but not its brightness)."""
@@ -124,6 +132,14 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             top = max((ev[row, x + 4:x + w - 4] for row in (y - 1, y, y + 1)), key=lambda px: px.sum())
             assert np.median(_hue_distance(top, track_colour(7))) < 10, "the plug-in's box is not drawn"
             assert np.abs(_crop(second, image) - ev).mean() > 1.0, "the event image does not change"
+
+            # save map: the mapper writes the file it is told, and its reply is shown
+            ply = tmp_path / "saved.ply"
+            _type(browser, "map.ply", str(ply))
+            time.sleep(1)
+            _click(browser, "Save map")
+            wait_for(lambda: "save done" in (browser.evaluate("document.body.innerText") or ""), 30, "the save")
+            assert ply.read_bytes().startswith(b"ply") and ply.stat().st_size > 1000
 
             # pause: the whole view freezes (the event image, the camera moving in the 3D view)
             _click(browser, "Pause view")
