@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.messages import Tracks
+from services.messages import Stats, Tracks
 from tests.browser import CHROMIUM, Browser
 from tests.conftest import ROOT, client_session, etam_argv, free_port, wait_for
 from web.render import track_colour
@@ -31,14 +31,18 @@ def _publish_plugin_tracks(endpoint: str, rig: str, stop: threading.Event) -> No
     """A plug-in as any user would write one: Tracks on its own key, which the dashboard has never heard of."""
     with client_session(endpoint) as session:
         pub = session.declare_publisher(f"etam/{rig}/plugin/boxes/tracks")
+        other = session.declare_publisher(f"etam/{rig}-b/plugin/probe/stats")  # a second rig on the network
         seq = 0
         while not stop.is_set():
             msg = Tracks.from_boxes(seq, [7], [PLUGIN_BOX], xyz=np.array([[0.3, 0.2, 2.0]], np.float32))
             msg.seq = seq
             pub.put(msg.encode())
+            if seq % 10 == 0:
+                other.put(Stats(service="plugin", name="probe", keys=[]).encode())
             seq += 1
             stop.wait(0.1)
         pub.undeclare()
+        other.undeclare()
 
 
 def _rect(browser: Browser, js_element: str) -> tuple[int, int, int, int]:
@@ -161,6 +165,16 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             _click(browser, "Resume view")
             time.sleep(2)
             assert np.abs(_crop(_shot(browser), image) - _crop(later, image)).mean() > 1.0, "resume did not resume"
+
+            # the rig chooser: the other rig's services replace this one's
+            browser.evaluate("Array.from(document.querySelectorAll('input')).find(e => e.value === "
+                             f"{rig!r}).click()")
+            wait_for(lambda: browser.evaluate("(() => { const o = Array.from(document.querySelectorAll("
+                                              f"'[role=option]')).find(o => o.innerText.trim() === {rig + '-b'!r});"
+                                              " if (o) o.click(); return !!o; })()"), 10, "the other rig offered")
+            text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
+                            and f"ETAM · {rig}-b" in t and "plugin/probe" in t and t, 20, "the other rig's view")
+            assert "camera/cam0" not in text
         assert points >= MAP_POINTS
     finally:
         stop.set()
