@@ -36,6 +36,8 @@ STABLE_S = 30.0  # a child that ran this long starts again from the shortest bac
 USAGE_ERROR = 2  # a child's exit code for a bad flag, source or config: restarting cannot help
 STOP_GRACE_S = 3.0
 SILENT_S = 10.0  # a running child without Stats this long is hung (a stuck loop keeps its liveliness token)
+STARTUP_S = 90.0  # ... but its first Stats may take this long: imports and numba compiling on a cold cache, on
+# a loaded CPU at a low priority (a dashboard killed for a slow start would never come up on a busy drone)
 VIEWER_NICE = 10  # the dashboard yields the CPU to the services a robot acts on
 MAPPER_NICE = 5  # ... and the mapper (keyframes every few seconds) to the tracker (tracks every 10 ms)
 
@@ -100,12 +102,14 @@ class Child:
         return True
 
     def kill_if_silent(self, last_stats: float | None) -> None:
-        """Kill a child whose Stats stopped (or never came) for SILENT_S; `check` restarts it."""
+        """Kill a child whose Stats stopped for SILENT_S, or never came in STARTUP_S; `check` restarts it."""
         if self.proc is None or self.proc.poll() is not None:
             return
-        last = max(last_stats or 0.0, self.started)
-        if time.monotonic() - last > SILENT_S:
-            log.warning("%s sent no Stats for %.0f s: it is hung; killing it", self.name, SILENT_S)
+        started = last_stats is not None and last_stats >= self.started
+        last, limit = (last_stats, SILENT_S) if started else (self.started, STARTUP_S)
+        if time.monotonic() - last > limit:
+            log.warning("%s sent no Stats for %.0f s%s: it is hung; killing it", self.name, limit,
+                        "" if started else " since it started")
             self.proc.kill()
 
     def stop(self) -> None:

@@ -30,8 +30,9 @@ class Browser:
         self.proc = subprocess.Popen(
             [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
              "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
-             "--disable-sync", "--no-first-run", "--disable-quic", f"--user-data-dir={self._dir}",
-             "--remote-debugging-port=0", f"--window-size={width},{height}", "about:blank"],
+             "--disable-sync", "--no-first-run", "--disable-quic", "--disable-dev-shm-usage",
+             f"--user-data-dir={self._dir}", "--remote-debugging-port=0", f"--window-size={width},{height}",
+             "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )
         port_file = Path(self._dir) / "DevToolsActivePort"

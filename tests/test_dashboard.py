@@ -88,6 +88,19 @@ def _hue_distance(pixels: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
     return np.where(hsv[:, 1] > 80, np.minimum(d, 180 - d), 90)
 
 
+def _wait_text(browser: Browser, expected: tuple[str, ...], timeout_s: float) -> str:
+    """The page's text once it holds every `expected` string; else fail saying which are missing and what the
+    page shows."""
+    deadline, text = time.monotonic() + timeout_s, ""
+    while time.monotonic() < deadline:
+        text = browser.evaluate("document.body ? document.body.innerText : ''") or ""
+        if all(s in text for s in expected):
+            return text
+        time.sleep(1.0)
+    missing = [s for s in expected if s not in text]
+    raise AssertionError(f"after {timeout_s} s the page lacks {missing}; it shows {text[:1500]!r}")
+
+
 def _click(browser: Browser, text: str) -> None:
     assert browser.evaluate(f"(() => {{ const b = Array.from(document.querySelectorAll('button'))"
                             f".find(b => b.innerText.includes({text!r})); if (b) b.click(); return !!b; }})()"), text
@@ -95,12 +108,13 @@ def _click(browser: Browser, text: str) -> None:
 
 @pytest.mark.timeout(420)
 def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tmp_path) -> None:  # noqa: ANN001
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen(
-        etam_argv("up", "--source", "sim:6dof", "--rig", rig, "--web-port", str(free_port()), "--listen", endpoint,
-                  "--duration", "300", "--log-level", "WARNING"),
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    )
+    endpoint, log = f"tcp/127.0.0.1:{free_port()}", tmp_path / "up.log"
+    with log.open("w") as err:
+        proc = subprocess.Popen(
+            etam_argv("up", "--source", "sim:6dof", "--rig", rig, "--web-port", str(free_port()), "--listen",
+                      endpoint, "--duration", "300", "--log-level", "WARNING"),
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=err, text=True,
+        )
     stop = threading.Event()
     plugin = threading.Thread(target=_publish_plugin_tracks, args=(endpoint, rig, stop), daemon=True)
     try:
@@ -113,9 +127,7 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             # services appear by their liveliness tokens, their keys with their first Stats (a clean clone
             # compiles kernels first)
             expected = ("camera/cam0", "tracker/objects", "mapper/map", "web/web", "→ tracks", "→ events", "→ points")
-            text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
-                            and all(s in t for s in expected) and t, 120, "all four services and their keys in the "
-                            "health table", period_s=1.0)
+            text = _wait_text(browser, expected, 180)
             assert f"ETAM · {rig}" in text
             points = wait_for(lambda: int(m.group(1).replace(",", "")) if (m := re.search(
                 r"([\d,]+) points shown", browser.evaluate("document.body.innerText") or "")) and int(
@@ -172,10 +184,11 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             wait_for(lambda: browser.evaluate("(() => { const o = Array.from(document.querySelectorAll("
                                               f"'[role=option]')).find(o => o.innerText.trim() === {rig + '-b'!r});"
                                               " if (o) o.click(); return !!o; })()"), 10, "the other rig offered")
-            text = wait_for(lambda: (t := browser.evaluate("document.body.innerText") or "")
-                            and f"ETAM · {rig}-b" in t and "plugin/probe" in t and t, 20, "the other rig's view")
+            text = _wait_text(browser, (f"ETAM · {rig}-b", "plugin/probe"), 20)
             assert "camera/cam0" not in text
         assert points >= MAP_POINTS
+    except AssertionError as exc:  # a failure on a CI machine must be readable from its message alone
+        raise AssertionError(f"{exc}\netam up logged: {log.read_text(errors='replace')[-3000:]!r}") from None
     finally:
         stop.set()
         plugin.join(10)

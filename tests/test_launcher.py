@@ -13,7 +13,7 @@ import psutil
 import zenoh
 import pytest
 
-from services.launcher import SILENT_S
+from services.launcher import SILENT_S, STARTUP_S, Child
 
 from tests.conftest import ROOT, etam_argv, free_port, wait_for
 
@@ -33,10 +33,10 @@ def _trackers(rig: str, other_than: int | None = None) -> list[psutil.Process]:
     return [p for p in _rig_processes(rig) if "tracker" in p.info["cmdline"] and p.pid != other_than]
 
 
-def _up(rig: str, report: Path, duration: float, *extra: str) -> subprocess.Popen:
+def _up(rig: str, report: Path, duration: float, *extra: str, listen: str | None = None) -> subprocess.Popen:
     return subprocess.Popen(
         etam_argv("up", "--duration", str(duration), "--no-web", "--report", str(report), "--rig", rig,
-                  "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING", *extra),
+                  "--listen", listen or f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING", *extra),
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
 
@@ -109,11 +109,17 @@ def test_launcher_killed_hard_leaves_no_orphans(tmp_path: Path, rig: str) -> Non
 
 @pytest.mark.slow
 def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, rig: str) -> None:
-    report_path = tmp_path / "r.json"
-    proc = _up(rig, report_path, 35)
+    from services.config import ZenohSettings
+
+    report_path, endpoint = tmp_path / "r.json", f"tcp/127.0.0.1:{free_port()}"
+    proc = _up(rig, report_path, 35, listen=endpoint)
     try:
         tracker = wait_for(lambda: _trackers(rig), 20, "the tracker")[0]
-        time.sleep(3)
+        stats: list[bytes] = []
+        with zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config()) as session:
+            sub = session.declare_subscriber(f"etam/{rig}/tracker/*/stats", lambda s: stats.append(s))
+            wait_for(lambda: stats, 60, "the tracker's first Stats")  # silence counts from then
+            sub.undeclare()
         tracker.suspend()  # alive, liveliness token still held, but doing nothing: hung
         wait_for(lambda: _trackers(rig, other_than=tracker.pid), 25, "a replacement for the hung tracker")
         out, err = proc.communicate(timeout=60)
@@ -124,6 +130,30 @@ def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, r
     assert "tracker sent no Stats" in err
     report = json.loads(report_path.read_text())
     assert report["services"]["tracker"]["restarts"] == 1
+
+
+def test_the_watchdog_gives_a_starting_service_longer_than_a_running_one() -> None:
+    """A service is hung when its Stats stop for SILENT_S; before its first Stats (imports, numba compiling,
+    a loaded CPU) it has STARTUP_S."""
+    child = Child("probe", ["sleep", "60"])
+    child.start(0.0)
+    try:
+        now = time.monotonic()
+        child.started = now - SILENT_S - 1  # starting, silent longer than a running service may be
+        child.kill_if_silent(None)
+        assert child.proc.poll() is None
+        child.kill_if_silent(now - 600)  # the Stats of an earlier run of it do not count
+        assert child.proc.poll() is None
+        child.kill_if_silent(now - SILENT_S + 2)  # running, Stats recent
+        assert child.proc.poll() is None
+        child.kill_if_silent(now - SILENT_S - 0.5)  # running, Stats stopped
+        assert child.proc.wait(5) is not None
+        child.start(0.0)
+        child.started = time.monotonic() - STARTUP_S - 1  # never sent Stats in STARTUP_S
+        child.kill_if_silent(None)
+        assert child.proc.wait(5) is not None
+    finally:
+        child.stop()
 
 
 def test_a_service_that_cannot_start_stops_the_rig_with_its_reason(tmp_path: Path, rig: str) -> None:
