@@ -74,6 +74,33 @@ def test_camera_tracker_and_subscriber_processes(router: str, rig: str) -> None:
     assert placed and all(z > 0 for z in placed) and 0.5 < float(np.median(placed)) < 20
 
 
+def test_tracks_take_their_depth_from_the_mappers_depth_map(router: str, rig: str) -> None:
+    """A depth image published by another service (the mapper's `mapper/map/depth`) places the tracks of a
+    camera of its size in 3D, with no object size given; before it comes, they have no `xyz`."""
+    from services.messages import image_from_array
+
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with spawn("camera", *common), spawn("tracker", *common), client_session(router) as s:
+        tracks = Collector(s, f"etam/{rig}/tracker/objects/tracks")
+        confirmed = lambda: [m for m in tracks.of(Tracks) if (m.state == 1).any()]  # noqa: E731
+        wait_for(confirmed, 60, "confirmed tracks")
+        assert all(m.xyz is None for m in tracks.of(Tracks)), "a 3D position without depth or size"
+        depth = np.full((260, 346), 2.5, np.float32)
+        depth[:, :20] = np.nan  # semi-dense: no depth there
+        pub = s.declare_publisher(f"etam/{rig}/mapper/map/depth")
+        n = len(tracks.of(Tracks))
+        placed = []
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and len(placed) < 20:
+            pub.put(image_from_array(0, depth, "rawf32").encode())
+            time.sleep(0.2)
+            placed = [z for m in tracks.of(Tracks)[n:] if m.xyz is not None
+                      for z, st, box in zip(m.xyz[:, 2], m.state, m.box, strict=True) if st == 1 and box[0] > 25]
+        pub.undeclare()
+    assert len(placed) >= 20, "no track placed by the published depth"
+    assert np.allclose(placed, 2.5, atol=1e-3)
+
+
 def test_garbage_on_events_is_counted_and_the_tracker_lives_on(router: str, rig: str) -> None:
     events_key = f"etam/{rig}/camera/cam0/events"
     with spawn("tracker", "--connect", router, "--rig", rig, *ROOT_ARGS) as tracker, client_session(router) as s:
