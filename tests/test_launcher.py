@@ -112,7 +112,7 @@ def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, r
     from services.config import ZenohSettings
 
     report_path, endpoint = tmp_path / "r.json", f"tcp/127.0.0.1:{free_port()}"
-    proc = _up(rig, report_path, 35, listen=endpoint)
+    proc = _up(rig, report_path, 90, listen=endpoint)
     try:
         tracker = wait_for(lambda: _trackers(rig), 20, "the tracker")[0]
         stats: list[bytes] = []
@@ -122,6 +122,7 @@ def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, r
             sub.undeclare()
         tracker.suspend()  # alive, liveliness token still held, but doing nothing: hung
         wait_for(lambda: _trackers(rig, other_than=tracker.pid), 25, "a replacement for the hung tracker")
+        proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
