@@ -105,11 +105,11 @@ class Child:
         """Kill a child whose Stats stopped for SILENT_S, or never came in STARTUP_S; `check` restarts it."""
         if self.proc is None or self.proc.poll() is not None:
             return
-        started = last_stats is not None and last_stats >= self.started
-        last, limit = (last_stats, SILENT_S) if started else (self.started, STARTUP_S)
+        running = last_stats is not None and last_stats >= self.started  # this run of it has sent Stats
+        last, limit = (last_stats, SILENT_S) if running else (self.started, STARTUP_S)
         if time.monotonic() - last > limit:
             log.warning("%s sent no Stats for %.0f s%s: it is hung; killing it", self.name, limit,
-                        "" if started else " since it started")
+                        "" if running else " since it started")
             self.proc.kill()
 
     def stop(self) -> None:

@@ -88,15 +88,19 @@ def _hue_distance(pixels: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
     return np.where(hsv[:, 1] > 80, np.minimum(d, 180 - d), 90)
 
 
+def _text(browser: Browser) -> str:
+    return browser.evaluate("document.body ? document.body.innerText : ''") or ""
+
+
 def _wait_text(browser: Browser, expected: tuple[str, ...], timeout_s: float) -> str:
     """The page's text once it holds every `expected` string; else fail saying which are missing and what the
     page shows."""
     deadline, text = time.monotonic() + timeout_s, ""
     while time.monotonic() < deadline:
-        text = browser.evaluate("document.body ? document.body.innerText : ''") or ""
+        text = _text(browser)
         if all(s in text for s in expected):
             return text
-        time.sleep(1.0)
+        time.sleep(0.2)
     missing = [s for s in expected if s not in text]
     raise AssertionError(f"after {timeout_s} s the page lacks {missing}; it shows {text[:1500]!r}")
 
@@ -130,7 +134,7 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             text = _wait_text(browser, expected, 180)
             assert f"ETAM · {rig}" in text
             points = wait_for(lambda: int(m.group(1).replace(",", "")) if (m := re.search(
-                r"([\d,]+) points shown", browser.evaluate("document.body.innerText") or "")) and int(
+                r"([\d,]+) points shown", _text(browser))) and int(
                 m.group(1).replace(",", "")) >= MAP_POINTS else 0, 150, f"{MAP_POINTS} map points", period_s=1.0)
             wait_for(lambda: browser.evaluate(f"{IMAGES}.length"), 30, "the live event image", period_s=0.5)
             time.sleep(3)  # the software renderer draws the scene once the cloud has arrived
@@ -154,12 +158,12 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
             _type(browser, "map.ply", str(ply))
             time.sleep(1)
             _click(browser, "Save map")
-            wait_for(lambda: "save done" in (browser.evaluate("document.body.innerText") or ""), 30, "the save")
+            _wait_text(browser, ("save done",), 30)
             assert ply.read_bytes().startswith(b"ply") and ply.stat().st_size > 1000
 
             # pause: the whole view freezes (the event image, the camera moving in the 3D view)
             _click(browser, "Pause view")
-            wait_for(lambda: "Resume view" in (browser.evaluate("document.body.innerText") or ""), 10, "paused")
+            _wait_text(browser, ("Resume view",), 10)
             time.sleep(2)
             paused, later = _shot(browser), _shot(browser)
             assert np.abs(_crop(later, image) - _crop(paused, image)).mean() < 0.5, "pause did not freeze the image"
@@ -167,8 +171,8 @@ def test_dashboard_draws_map_events_boxes_and_obeys_pause_and_reset(rig: str, tm
 
             # reset map (while paused, so nothing else moves): the colour-mapped points go, nothing comes
             _click(browser, "Reset map")
-            wait_for(lambda: "reset done" in (browser.evaluate("document.body.innerText") or ""), 30, "the reset")
-            wait_for(lambda: "No map yet" in (browser.evaluate("document.body.innerText") or ""), 10, "an empty map")
+            _wait_text(browser, ("reset done",), 30)
+            _wait_text(browser, ("No map yet",), 10)
             time.sleep(3)
             before, after = _vivid(_crop(later, scene)), _vivid(_crop(_shot(browser), scene))
             gone, came = np.count_nonzero(before & ~after), np.count_nonzero(after & ~before)

@@ -10,12 +10,11 @@ import time
 from pathlib import Path
 
 import psutil
-import zenoh
 import pytest
 
 from services.launcher import SILENT_S, STARTUP_S, Child
 
-from tests.conftest import ROOT, etam_argv, free_port, wait_for
+from tests.conftest import ROOT, client_session, etam_argv, free_port, wait_for
 
 
 def _rig_processes(rig: str) -> list[psutil.Process]:
@@ -109,14 +108,12 @@ def test_launcher_killed_hard_leaves_no_orphans(tmp_path: Path, rig: str) -> Non
 
 @pytest.mark.slow
 def test_hung_service_is_detected_by_its_silence_and_restarted(tmp_path: Path, rig: str) -> None:
-    from services.config import ZenohSettings
-
     report_path, endpoint = tmp_path / "r.json", f"tcp/127.0.0.1:{free_port()}"
     proc = _up(rig, report_path, 90, listen=endpoint)
     try:
         tracker = wait_for(lambda: _trackers(rig), 20, "the tracker")[0]
         stats: list[bytes] = []
-        with zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config()) as session:
+        with client_session(endpoint) as session:
             sub = session.declare_subscriber(f"etam/{rig}/tracker/*/stats", lambda s: stats.append(s))
             wait_for(lambda: stats, 60, "the tracker's first Stats")  # silence counts from then
             sub.undeclare()
@@ -171,7 +168,6 @@ def test_a_service_that_cannot_start_stops_the_rig_with_its_reason(tmp_path: Pat
 
 @pytest.mark.slow
 def test_tracking_resumes_after_the_camera_restarts(tmp_path: Path, rig: str) -> None:
-    from services.config import ZenohSettings
     from services.messages import Tracks, decode
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -180,7 +176,7 @@ def test_tracking_resumes_after_the_camera_restarts(tmp_path: Path, rig: str) ->
     stamps: list[int] = []
     try:
         camera = wait_for(lambda: [p for p in _rig_processes(rig) if "camera" in p.cmdline()], 20, "camera")[0]
-        with zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config()) as session:
+        with client_session(endpoint) as session:
             sub = session.declare_subscriber(f"etam/{rig}/tracker/objects/tracks",
                                              lambda s: stamps.append(decode(s.payload.to_bytes(), Tracks).t))
             wait_for(lambda: len(stamps) > 200, 20, "tracks before the restart")

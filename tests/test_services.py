@@ -82,8 +82,7 @@ def test_tracks_take_their_depth_from_the_mappers_depth_map(router: str, rig: st
     common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
     with spawn("camera", *common), spawn("tracker", *common), client_session(router) as s:
         tracks = Collector(s, f"etam/{rig}/tracker/objects/tracks")
-        confirmed = lambda: [m for m in tracks.of(Tracks) if (m.state == 1).any()]  # noqa: E731
-        wait_for(confirmed, 60, "confirmed tracks")
+        wait_for(lambda: any((m.state == 1).any() for m in tracks.of(Tracks)), 60, "confirmed tracks")
         assert all(m.xyz is None for m in tracks.of(Tracks)), "a 3D position without depth or size"
         depth = np.full((260, 346), 2.5, np.float32)
         depth[:, :20] = np.nan  # semi-dense: no depth there
