@@ -18,6 +18,7 @@ from services import config
 from services.camera.formats import FormatError
 from services.camera.sources import SourceError
 from services.tracker.ego import MODES as EGO_MODES
+from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, method_params
 
 log = logging.getLogger("etam")
@@ -376,10 +377,13 @@ def _print_scores(scores: dict) -> None:
 def _cmd_odom(args: argparse.Namespace) -> int:
     from services.tracker.offline import odometry
 
-    _require_files(args.input)
-    summary = odometry(Path(args.input), _output(args.out), progress=not args.json)
-    print(json.dumps(summary) if args.json else f"wrote {summary['poses']} poses ({summary['mode']}, "
-          f"{summary['still']} still, {summary['events']} events) to {args.out}")
+    _require_files(args.input, *([args.start] if args.start else []))
+    summary = odometry(Path(args.input), _output(args.out), progress=not args.json, mode=args.mode,
+                       bootstrap_s=args.bootstrap, start=Path(args.start) if args.start else None)
+    detail = (f"{summary['still']} still" if args.mode == "rotation" else
+              f"{summary['keyframes']} keyframes, first map from {summary['bootstrap_s']:g} s of known poses")
+    print(json.dumps(summary) if args.json else f"wrote {summary['poses']} poses ({summary['mode']}, {detail}, "
+          f"{summary['lost']} lost, {summary['events']} events) to {args.out}")
     return 0
 
 
@@ -610,11 +614,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_track)
 
-    p = sub.add_parser("odom", help="camera orientation of a recording by contrast maximisation into a TUM "
-                                    "trajectory (t tx ty tz qx qy qz qw, T_world_cam)")
-    p.add_argument("input", help="any readable event file (a rotating camera)")
-    p.add_argument("--mode", default="rotation", choices=("rotation",),
-                   help="rotation: angular velocity by contrast maximisation, integrated (6-DoF is not yet built)")
+    p = sub.add_parser("odom", help="camera motion of a recording into a TUM trajectory (t tx ty tz qx qy qz qw, "
+                                    "T_world_cam): its orientation, or its 6-DoF pose with a map built on the way")
+    p.add_argument("input", help="any readable event file")
+    p.add_argument("--mode", default="rotation", choices=ODOMETRY_MODES,
+                   help="rotation: angular velocity by contrast maximisation, integrated (a turning camera); 6dof: "
+                        "the semi-dense map aligned to the events, the map swept from those poses (default rotation)")
+    p.add_argument("--bootstrap", type=float, default=1.5, metavar="S",
+                   help="6dof: seconds of known poses at the start, whose events make the first map (default 1.5)")
+    p.add_argument("--start", metavar="TRAJ.tum",
+                   help="6dof: the known poses of the start (TUM, T_world_cam); default: the file's truth poses")
     p.add_argument("--out", default="traj.tum", help="TUM trajectory to write (default traj.tum)")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_odom)

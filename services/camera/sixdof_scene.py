@@ -1,7 +1,7 @@
 """`6dof`: a hand-held-like camera moving in front of textured 3D structure (seed 001's setting).
 
-A room of textured planes (back wall at 5 m, floor, side walls) with textured boxes at 0.8-3 m. Each
-pixel's ray is intersected with every surface (vectorised over pixels), the nearest hit gives the
+A room of planes printed with flat-toned patterns (back wall at 5 m, floor, side walls) with printed boxes
+at 0.8-3 m. Each pixel's ray is intersected with every surface (vectorised over pixels), the nearest hit gives the
 intensity (from a texture in metric surface coordinates) and the depth. The camera's position and
 orientation are smooth periodic functions of time, so poses and depth maps are exact ground truth.
 The world frame is the (left) camera's frame at t = 0 (x right, y down, z forward). A stereo rig is two
@@ -59,6 +59,15 @@ def _ray_cast(o, R, rays, planes, box_lo, box_hi, px_per_m, tex_size):  # noqa: 
     return best, u, v
 
 
+def _printed(smooth: np.ndarray, levels: int = 4) -> np.ndarray:
+    """A smooth texture cut into `levels` flat tones with sharp (1 px soft) edges between them, as posters,
+    furniture and printed patterns show a real camera. A smooth field's events come from wherever the
+    motion crosses its gradients, which moves with the motion's direction: it has no fixed edges to map
+    or to track a pose against."""
+    flat = 0.2 + 0.8 * np.floor(np.clip(smooth, 0.0, 0.999) * levels) / levels
+    return cv2.GaussianBlur(flat.astype(np.float32), (0, 0), 1.0)
+
+
 class SixDofScene:
     """Renders log intensity and depth for the camera pose at any time; see the module docstring."""
 
@@ -71,7 +80,7 @@ class SixDofScene:
         self.focal_px = 0.9 * width
         self.period_us = int(period_s * 1e6)
         self._w = 2 * np.pi / period_s
-        tex = cv2.resize(_texture(rng, 128, 128), (512, 512), interpolation=cv2.INTER_CUBIC)
+        tex = _printed(cv2.resize(_texture(rng, 128, 128), (512, 512), interpolation=cv2.INTER_CUBIC))
         self._log_tex = np.log(np.clip(tex, 0.05, None) + 1e-3).astype(np.float32)
         # planes: (axis, coordinate); boxes: (lo xyz, hi xyz)
         self.planes = [(2, 5.0), (1, 1.2), (0, -2.5), (0, 2.5)]

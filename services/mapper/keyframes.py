@@ -55,10 +55,10 @@ class KeyframeMapper:
         self.scene_depth = float(np.sqrt(self.depths[0] * self.depths[-1]))
         self.build = build or (lambda events, trajectory: sweep_keyframe(
             events, trajectory, self.K, width, height, self.depths, self.params.sweep))
-        self._restart()
+        self.drop()
 
-    def _restart(self) -> None:
-        """A new segment: no events held, no travel."""
+    def drop(self) -> None:
+        """A new segment: the events held are dropped unswept, the travel counted from nothing."""
         self._chunks: list[np.ndarray] = []
         self._n = 0
         self._last: np.ndarray | None = None  # where the camera was last seen, and how far it went in the segment
@@ -107,13 +107,13 @@ class KeyframeMapper:
         of a segment's baseline in it (a shorter one would place its points poorly), else None."""
         if self._n and self._travel >= min_share * self.params.baseline_share * self.scene_depth:
             return self.finish(trajectory)
-        self._restart()
+        self.drop()
         return None
 
     def finish(self, trajectory: Trajectory) -> Keyframe:
         """The keyframe of the events held so far (the segment ends here)."""
         events = np.concatenate(self._chunks)
-        self._restart()
+        self.drop()
         keyframe = self.build(events, trajectory)
         if len(keyframe.points):
             local = keyframe.depth[np.isfinite(keyframe.depth)]

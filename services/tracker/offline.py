@@ -11,11 +11,14 @@ import numpy as np
 from tqdm import tqdm
 
 from services.camera.filters import Undistort
-from services.camera.formats import FormatError, open_recording
+from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
-from services.mapper.trajectory import read_tum, write_tum
+from services.mapper.trajectory import Trajectory, read_tum, write_tum
+from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
+from services.tracker.ego.loop import LoopParams, MappedOdometry
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
+from services.tracker.ego.sixdof import TRACKING as TRACKING_6DOF
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
@@ -56,27 +59,65 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
             "boxes": len(table), "track_ids": len(ids)}
 
 
-def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True) -> dict[str, Any]:
-    """Run the rotation tracker over a recording's first camera (undistorted where calibrated so) and write
-    its poses (T_world_cam, the world frame being the camera's at the first event) as a TUM file; lost
-    windows (see `rotation.LOST`) give none, and are counted."""
+def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True,
+             mode: str = "rotation", bootstrap_s: float = 1.5, start: Path | None = None,
+             loop_params: LoopParams | None = None) -> dict[str, Any]:
+    """Run the ego-motion tracker over a recording's first camera (undistorted where calibrated so) and write
+    its poses (T_world_cam) as a TUM file: `rotation` (the world frame being the camera's at the first
+    event), or `6dof` (the tracking-mapping loop, its first map from the first `bootstrap_s` of known poses:
+    `start`'s, else the file's truth; the world frame is theirs). Lost updates give no pose, and are
+    counted."""
+    if mode not in ODOMETRY_MODES:
+        raise ValueError(f"odometry mode {mode!r} is not one of {', '.join(ODOMETRY_MODES)}")
     rows = []
     with open_recording(src) as rec:
-        tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         undistort = Undistort.of(rec)
+        six = mode == "6dof"
+        if six:
+            known = _known_start(rec, src, bootstrap_s, start)
+            tracker: RotationTracker | MappedOdometry = MappedOdometry(rec.K_or_default(), rec.width, rec.height,
+                                                                       known, loop_params)
+        else:
+            tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         n_events = still = lost = 0
         with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
             for chunk in rec.chunks():
                 n_events += len(chunk)
                 bar.update(len(chunk))
+                if six:
+                    chunk = chunk[chunk["t"] >= known.start_us]
                 for est in tracker.add(undistort(chunk) if undistort is not None else chunk):
-                    lost += est.state == LOST
-                    if est.state != LOST:
-                        rows.append([est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
-                        still += est.state == STILL
+                    if (est.state != TRACKING_6DOF) if six else (est.state == LOST):
+                        lost += 1
+                        continue
+                    rows.append(est.tum_row() if six else [est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
+                    still += not six and est.state == STILL
     write_tum(str(out), np.asarray(rows).reshape(-1, 8))
-    return {"input": str(src), "output": str(out), "mode": "rotation", "events": n_events, "poses": len(rows),
-            "still": still, "lost": lost, "rate_hz": 1e6 / tracker.params.step_us}
+    summary = {"input": str(src), "output": str(out), "mode": mode, "events": n_events, "poses": len(rows),
+               "still": still, "lost": lost}
+    if six:
+        summary |= {"rate_hz": 1e6 / tracker.params.tracker.step_us, "bootstrap_s": bootstrap_s,
+                    "keyframes": len(tracker.keyframes), "map_points": sum(len(k.points) for k in tracker.keyframes)}
+    else:
+        summary["rate_hz"] = 1e6 / tracker.params.step_us
+    return summary
+
+
+def _known_start(rec: Recording, src: Path, bootstrap_s: float, start: Path | None) -> Trajectory:
+    """The known poses of the first `bootstrap_s` (of `start`'s TUM file, else the recording's truth)."""
+    if bootstrap_s <= 0:
+        raise ValueError(f"--bootstrap must be positive, got {bootstrap_s}")
+    if start is not None:
+        rows = read_tum(str(start))
+    elif rec.truth.poses is not None:
+        rows = np.asarray(rec.truth.poses, np.float64)
+    else:
+        raise ValueError(f"{src}: 6-DoF odometry needs known poses for its first {bootstrap_s:g} s, to build its "
+                         "first map: give --start traj.tum, or a recording with /truth/poses")
+    rows = rows[rows[:, 0] <= rows[0, 0] + bootstrap_s + 1e-9]
+    if len(rows) < 2:
+        raise ValueError(f"{start or src}: fewer than 2 known poses in the first {bootstrap_s:g} s")
+    return Trajectory(rows)
 
 
 def eval_odometry(pred: Path, truth: Path, align: str = "auto") -> dict[str, Any]:
