@@ -76,11 +76,10 @@ class MappedOdometry:
     def _start(self) -> None:
         """The first keyframe from the known motion's events, and the tracker at its last pose."""
         self.started = True
-        boot = ev_ops.concat([b for b in self._boot if len(b)]) if any(len(b) for b in self._boot) else None
-        self._boot = []
-        if boot is None:
+        parts, self._boot = [b for b in self._boot if len(b)], []
+        if not parts:
             raise ValueError("no events during the known start: nothing to build a first map from")
-        for kf in self.mapper.add(boot, self.known):
+        for kf in self.mapper.add(ev_ops.concat(parts), self.known):
             self._keyframe(kf)
         # the rest of the known motion makes a keyframe if long enough to place its points, or the only one
         last = self.mapper.flush(self.known) if self.keyframes else self.mapper.finish(self.known)
@@ -97,18 +96,22 @@ class MappedOdometry:
 
     def _map_until(self, t_us: int) -> None:
         """The pending events up to `t_us` to the mapper, with the trajectory so far."""
-        events = ev_ops.concat(self._pending) if len(self._pending) > 1 else self._pending[0]
-        cut = int(np.searchsorted(events["t"], t_us, side="right"))
-        self._pending = [events[cut:]]
-        if cut and len(self._rows) >= 2:
-            for kf in self.mapper.add(events[:cut], Trajectory(np.asarray(self._rows))):
+        events = self._take_pending(t_us)
+        if len(events) and len(self._rows) >= 2:
+            for kf in self.mapper.add(events, Trajectory(np.asarray(self._rows))):
                 self._keyframe(kf)
 
     def _drop_until(self, t_us: int) -> None:
         """A lost update: the events before it have no pose, and the segment the mapper held ends unswept."""
-        events = ev_ops.concat(self._pending) if len(self._pending) > 1 else self._pending[0]
-        self._pending = [events[int(np.searchsorted(events["t"], t_us, side="right")):]]
+        self._take_pending(t_us)
         self.mapper.drop()
+
+    def _take_pending(self, t_us: int) -> np.ndarray:
+        """The pending events up to `t_us`, no longer pending."""
+        events = ev_ops.concat(self._pending) if len(self._pending) > 1 else self._pending[0]
+        cut = int(np.searchsorted(events["t"], t_us, side="right"))
+        self._pending = [events[cut:]]
+        return events[:cut]
 
     def _keyframe(self, kf: Keyframe) -> None:
         self.keyframes.append(kf)
