@@ -90,7 +90,6 @@ def speed_6dof(h5: Path) -> dict:
     points = [kf.points for kf in mapper.add(events, truth)]
     start = int(truth.start_us)
     events = events[events["t"] >= start]
-    cuts = np.searchsorted(events["t"], np.arange(events["t"][0], events["t"][-1], PACKET_US))
     tracker = SixDofTracker(K, w, h)
     for p in points:
         tracker.add_points(p)
@@ -98,7 +97,7 @@ def speed_6dof(h5: Path) -> dict:
     tracker.start(start, R0, p0)
     with _one_thread():
         cpu, updates = 0.0, 0
-        for packet in np.split(events, cuts[1:]):
+        for packet in _packets(events):
             c0 = time.process_time()
             updates += len(tracker.add(packet))
             cpu += time.process_time() - c0
@@ -115,8 +114,7 @@ def speed(h5: Path, seconds: float) -> list[dict]:
     with open_recording(h5) as rec:
         events = np.concatenate(list(rec.chunks()))
         K, w, h = rec.K_or_default(), rec.width, rec.height
-    cuts = np.searchsorted(events["t"], np.arange(events["t"][0], events["t"][-1], PACKET_US))
-    packets = np.split(events, cuts[1:])
+    packets = _packets(events)
     stream_rate = len(events) / ((events["t"][-1] - events["t"][0]) * 1e-6)
     rows = []
     with _one_thread():
@@ -135,6 +133,12 @@ def speed(h5: Path, seconds: float) -> list[dict]:
                          "wall_estimates_per_s": estimates / wall, "events_per_s": len(events) / cpu,
                          "realtime_factor": seconds / cpu})
     return rows
+
+
+def _packets(events: np.ndarray) -> list[np.ndarray]:
+    """Events cut into packets of `PACKET_US`, as the live service receives them."""
+    cuts = np.searchsorted(events["t"], np.arange(events["t"][0], events["t"][-1], PACKET_US))
+    return np.split(events, cuts[1:])
 
 
 @contextmanager

@@ -18,7 +18,6 @@ from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
 from services.tracker.ego.loop import LoopParams, MappedOdometry
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
-from services.tracker.ego.sixdof import TRACKING as TRACKING_6DOF
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
@@ -74,9 +73,8 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
         undistort = Undistort.of(rec)
         six = mode == "6dof"
         if six:
-            known = _known_start(rec, src, bootstrap_s, start)
-            tracker: RotationTracker | MappedOdometry = MappedOdometry(rec.K_or_default(), rec.width, rec.height,
-                                                                       known, loop_params)
+            tracker: RotationTracker | MappedOdometry = MappedOdometry(
+                rec.K_or_default(), rec.width, rec.height, _known_start(rec, src, bootstrap_s, start), loop_params)
         else:
             tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         n_events = still = lost = 0
@@ -84,14 +82,11 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
             for chunk in rec.chunks():
                 n_events += len(chunk)
                 bar.update(len(chunk))
-                if six:
-                    chunk = chunk[chunk["t"] >= known.start_us]
                 for est in tracker.add(undistort(chunk) if undistort is not None else chunk):
-                    if (est.state != TRACKING_6DOF) if six else (est.state == LOST):
-                        lost += 1
-                        continue
-                    rows.append(est.tum_row() if six else [est.t_us / 1e6, 0.0, 0.0, 0.0, *est.quat])
-                    still += not six and est.state == STILL
+                    lost += est.state == LOST
+                    if est.state != LOST:
+                        rows.append(est.tum_row())
+                        still += est.state == STILL
     write_tum(str(out), np.asarray(rows).reshape(-1, 8))
     summary = {"input": str(src), "output": str(out), "mode": mode, "events": n_events, "poses": len(rows),
                "still": still, "lost": lost}

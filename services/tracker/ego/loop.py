@@ -52,16 +52,17 @@ class MappedOdometry:
         self.started = False
 
     def add(self, events: np.ndarray) -> list[PoseEstimate]:
-        """Events sorted by time; the estimates of the updates they completed."""
-        if not len(events):
-            return []
+        """Events sorted by time; the estimates of the updates they completed. Events before the known start
+        are passed over (no pose places them)."""
         if not self.started:
-            cut = int(np.searchsorted(events["t"], self.known.end_us, side="left"))
-            self._boot.append(events[:cut])
+            lo, cut = np.searchsorted(events["t"], [self.known.start_us, self.known.end_us], side="left")
+            self._boot.append(events[lo:cut])
             events = events[cut:]
             if not len(events):
                 return []
             self._start()
+        elif not len(events):
+            return []
         estimates = self.tracker.add(events)
         self._pending.append(events)
         for est in estimates:

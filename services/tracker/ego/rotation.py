@@ -75,6 +75,10 @@ class RotationEstimate:
     window_us: int
     contrast_gain: float  # the contrast at the estimate over that at w = 0 (how much the motion explains)
 
+    def tum_row(self) -> list[float]:
+        """t tx ty tz qx qy qz qw, at the origin (a rotation has no position)."""
+        return [self.t_us / 1e6, 0.0, 0.0, 0.0, *self.quat.tolist()]
+
 
 class RotationTracker:
     """Turns a stream of (undistorted) events into rotation estimates; `add` returns those completed."""

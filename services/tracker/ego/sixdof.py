@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-TRACKING, LOST = 0, 2  # as the rotation tracker's states
+from services.tracker.ego.rotation import LOST, TRACKING  # an estimate's states, as the rotation tracker's
 
 
 @dataclass
@@ -159,13 +159,14 @@ def align(points: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, fields: list[t
 
 class SixDofTracker:
     """Events (undistorted, sorted) in, poses out: each `step_us` the map (`add_points`) is aligned to the
-    latest events, from the pose predicted by the last two (`start` gives the first)."""
+    latest events, from the pose predicted by the last good ones (`start` gives the first)."""
 
     def __init__(self, K: np.ndarray, width: int, height: int, params: SixDofParams | None = None,
                  seed: int = 0) -> None:
         self.K, self.width, self.height = np.asarray(K, np.float64), width, height
         self.params = params or SixDofParams()
         self._maps: list[np.ndarray] = []
+        self._points = np.zeros((0, 3))  # the maps' points in one array
         self._rng = np.random.default_rng(seed)
         self._tail = np.zeros(0, [("x", np.uint16), ("y", np.uint16), ("t", np.int64)])
         self._poses: list[tuple[int, np.ndarray, np.ndarray]] = []  # (t_us, R_cw, t_cw) of the last good ones
@@ -185,10 +186,11 @@ class SixDofTracker:
         points = np.asarray(points, np.float64).reshape(-1, 3)
         if len(points):
             self._maps = [*self._maps, points][-self.params.map_keyframes:]
+            self._points = np.concatenate(self._maps)
 
     @property
     def map_points(self) -> int:
-        return sum(len(m) for m in self._maps)
+        return len(self._points)
 
     def add(self, events: np.ndarray) -> list[PoseEstimate]:
         """Events sorted by time; the estimates of the update times they passed."""
@@ -213,7 +215,8 @@ class SixDofTracker:
             self._tail = np.concatenate([self._tail, part])[-keep:]
 
     def _predict(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """T_cam_world at `t_us` by constant velocity from the last two good poses (the last alone if one)."""
+        """T_cam_world at `t_us` by constant velocity between the oldest and the latest of the good poses kept
+        (the latest alone if it is the only one, or while lost)."""
         t1, R1, c1 = self._poses[-1]
         if len(self._poses) < 2 or self.state == LOST:
             return R1, c1
@@ -247,9 +250,7 @@ class SixDofTracker:
 
     def _visible(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """A random sample of up to `max_points` map points in view from T_cam_world (R, t)."""
-        if not self._maps:
-            return np.zeros((0, 3))
-        points = np.concatenate(self._maps) if len(self._maps) > 1 else self._maps[0]
+        points = self._points
         Xc = points @ R.T + t
         z = Xc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
