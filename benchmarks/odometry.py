@@ -21,6 +21,8 @@ No peer library on PyPI estimates camera motion from events, so no ratio is give
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -29,17 +31,22 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import zenoh
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
+from benchmarks import free_port, join
 from benchmarks.mapping import per_seed
 from services.camera.formats import open_recording
 from services.camera.offline import simulate
 from services.camera.simulator import SimParams
+from services.config import ZenohSettings
 from services.mapper.keyframes import KeyframeMapper
 from services.mapper.trajectory import Trajectory
+from services.messages import Pose, decode
 from services.tracker.ego.loop import LoopParams
 from services.tracker.ego.rotation import RotationParams, RotationTracker
-from services.tracker.ego.sixdof import SixDofTracker
+from services.tracker.ego.sixdof import SixDofParams, SixDofTracker
 from services.tracker.offline import eval_odometry, odometry
 
 HELD_OUT_SEEDS = (11, 12, 13)  # never looked at while choosing defaults: keep them so
@@ -47,7 +54,11 @@ PEAKS_DEG_S = {11: 600.0, 12: 800.0, 13: 1000.0}  # each seed's motion scaled to
 FIGURES = ("omega_rms_deg_s", "omega_peak_deg_s", "omega_rms_of_peak", "final_rot_err_deg", "ate_rot_deg",
            "rpe_deg_per_s", "integrated_final_rot_err_deg", "integrated_omega_rms_of_peak")
 SIXDOF_FIGURES = ("distance_m", "ate_m", "ate_percent_of_distance", "se3_ate_percent", "sim3_ate_percent",
-                  "ate_rot_deg", "rpe_deg_per_s", "rpe_cm_per_s", "lost", "keyframes")
+                  "ate_rot_deg", "rpe_deg_per_s", "rpe_cm_per_s", "lost", "keyframes", "live_started_s", "live_poses",
+                  "live_lost", "live_ate_m", "live_ate_percent", "live_se3_ate_percent", "live_omega_rms_deg_s",
+                  "live_map_parts")
+LIVE_SLACK_S = 12.0  # `etam up` on a recording runs this much longer than it (processes start, the camera waits)
+OMEGA_SPAN_US = 40_000  # the truth's angular velocity: the turn over this span around each pose
 SPEED_SIM = SimParams(contrast=0.7)  # the rotation scene at about 1 Mev/s over 4 s
 PACKET_US = 1_000
 
@@ -72,11 +83,77 @@ def run(quick: bool = False) -> list[dict]:
             done = odometry(h5, tum, progress=False, mode="6dof")
             aligned = {f"{a}_ate_percent": eval_odometry(tum, h5, a)["ate_percent_of_distance"]
                        for a in ("se3", "sim3")}
-            return {**eval_odometry(tum, h5, "origin"), "lost": done["lost"], "keyframes": done["keyframes"], **aligned}
+            return {**eval_odometry(tum, h5, "origin"), "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
+                    **live_loop(h5, Path(tmp) / f"6dof{seed}-live.tum")}
 
         rows += per_seed("odometry 6dof", "6dof", seeds, 4.0 if quick else 10.0, score_6dof, SIXDOF_FIGURES, Path(tmp))
         rows.append(speed_6dof(Path(tmp) / "6dof11.h5"))
     return rows
+
+
+def live_loop(h5: Path, tum: Path) -> dict:
+    """The closed loop live, as `etam up --source FILE.h5 --ego 6dof` runs it (camera, tracker and mapper
+    processes over zenoh, the recording in real time): the tracker's own poses on ``tracker/ego/pose`` (not
+    the truth it passes on until the mapper's first points come), scored as `etam odom`'s are."""
+    with open_recording(h5) as rec:
+        seconds = rec.truth.poses[-1, 0]
+    endpoint, rig = f"tcp/127.0.0.1:{free_port()}", "loop"
+    rows: list[list[float]] = []
+    parts = [0]
+
+    def on_pose(sample: zenoh.Sample) -> None:
+        msg = decode(sample.payload.to_bytes(), Pose)
+        rows.append([msg.t / 1e6, *msg.p, *msg.q, *(msg.omega if msg.omega is not None else np.zeros(3))])
+
+    argv = [sys.executable, "-m", "services.cli", "up", "--source", str(h5), "--ego", "6dof", "--no-web", "--rig", rig,
+            "--listen", endpoint, "--duration", str(seconds + LIVE_SLACK_S), "--log-level", "WARNING"]
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
+    try:
+        session = join(ZenohSettings(mode="client", connect=[endpoint]).zenoh_config(), proc)
+        if session is None:
+            return {"live_error": f"no router at {endpoint}"}
+        with session:
+            subs = [session.declare_subscriber(f"etam/{rig}/tracker/ego/pose", on_pose),
+                    session.declare_subscriber(f"etam/{rig}/mapper/*/keyframe",
+                                               lambda _: parts.__setitem__(0, parts[0] + 1))]
+            proc.wait(seconds + LIVE_SLACK_S + 30)
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    own = _own(np.asarray(rows).reshape(-1, 11), h5)
+    if len(own) < 2:
+        return {"live_error": f"{len(own)} poses of its own"}
+    np.savetxt(tum, own[:, :8], fmt="%.6f")
+    scores, se3 = eval_odometry(tum, h5, "origin"), eval_odometry(tum, h5, "se3")
+    step_s = SixDofParams().step_us / 1e6
+    updates = int(round((seconds - own[0, 0]) / step_s)) + 1  # from its first to the recording's end
+    return {"live_started_s": float(own[0, 0]), "live_poses": len(own), "live_lost": max(updates - len(own), 0),
+            "live_ate_m": scores["ate_m"], "live_ate_percent": scores["ate_percent_of_distance"],
+            "live_se3_ate_percent": se3["ate_percent_of_distance"], "live_map_parts": parts[0],
+            "live_omega_rms_deg_s": _omega_error(own, h5)}
+
+
+def _own(rows: np.ndarray, h5: Path) -> np.ndarray:
+    """The tracker's own poses among `rows` (t, p, q, omega): not the truth it passed on before its start."""
+    with open_recording(h5) as rec:
+        truth = rec.truth.poses
+    at = np.searchsorted(truth[:, 0], rows[:, 0]).clip(0, len(truth) - 1)
+    passed_on = (np.abs(truth[at, 0] - rows[:, 0]) < 1e-7) & np.all(np.abs(truth[at, 1:4] - rows[:, 1:4]) < 1e-7,
+                                                                       axis=1)
+    return rows[~passed_on]
+
+
+def _omega_error(own: np.ndarray, h5: Path) -> float:
+    """RMS (deg/s) of the published angular velocity against the truth's, from the truth's orientations."""
+    with open_recording(h5) as rec:
+        truth = Trajectory(rec.truth.poses)
+    t_us = np.round(own[:, 0] * 1e6)
+    R0, _ = truth.at(t_us - OMEGA_SPAN_US / 2)
+    R1, _ = truth.at(t_us + OMEGA_SPAN_US / 2)
+    true = Rotation.from_matrix(np.einsum("nji,njk->nik", R0, R1)).as_rotvec() / (OMEGA_SPAN_US / 1e6)
+    return float(np.degrees(np.sqrt(np.mean(np.sum((own[:, 8:] - true) ** 2, axis=1)))))
 
 
 def speed_6dof(h5: Path) -> dict:

@@ -140,9 +140,11 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
 
 def _cmd_mapper(args: argparse.Namespace) -> int:
     from services.mapper.service import MapperService
+    from services.tracker.ego.loop import tracking_map
 
+    params = tracking_map(_map_params(args)) if args.tracking_map else _map_params(args)
     try:
-        service = MapperService(_service_options(args, "map"), _map_params(args), cam=args.cam, poses=args.poses,
+        service = MapperService(_service_options(args, "map"), params, cam=args.cam, poses=args.poses,
                                 mode=args.build, mosaic_params=_mosaic_params(args), method=args.method or "sweep",
                                 right=args.right, max_rate=args.max_rate * 1e6)
     except ValueError as exc:
@@ -161,8 +163,11 @@ def _cmd_web(args: argparse.Namespace) -> int:
 # size: its Poisson solve costs a fifth, leaving the cores to the camera
 MAPPED_SIMS = {"sim:6dof": (), "sim:stereo": ("--method", "stereo"),
                "sim:rotation": ("--build", "mosaic", "--size", "1024x512", "--poses", "ego")}
-# sources whose tracker also estimates the camera's motion in `etam up`, and how
+# sources whose tracker also estimates the camera's motion in `etam up` (unless --ego says otherwise), and how. With
+# --ego 6dof the mapper maps from the tracker's poses, and the tracker follows its map: the closed loop; it is not
+# sim:6dof's default, whose map comes from the truth, as it still drifts and loses its map live (see the README)
 EGO_SIMS = {"sim:rotation": "rotation"}
+LOOP_MAPPER_ARGS = ("--poses", "ego", "--tracking-map")
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -170,12 +175,14 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise config.ConfigError(f"--duration must be positive, got {args.duration}")
+    ego = args.ego or EGO_SIMS.get(args.source, "off")
+    mapped = args.source in MAPPED_SIMS or args.map or ego == "6dof"
     opts = UpOptions(
         rig=config.resolve_rig(args.rig), source=args.source, listen=args.listen, web=not args.no_web,
         web_port=args.web_port, duration_s=args.duration, report=Path(args.report) if args.report else None,
         log_level=args.log_level,
-        services=("camera", "tracker", *(("mapper",) if args.source in MAPPED_SIMS or args.map else ())),
-        mapper_args=MAPPED_SIMS.get(args.source, ()),
+        services=("camera", "tracker", *(("mapper",) if mapped else ())),
+        mapper_args=(*MAPPED_SIMS.get(args.source, ()), *(LOOP_MAPPER_ARGS if ego == "6dof" else ())),
         camera_args=("--rate", str(args.rate), *(("--loop",) if args.loop else ()),
                      *(a for f in args.filter or [] for a in ("--filter", f)),
                      *(a for item in args.sim_param or [] for a in ("--sim-param", item)),
@@ -200,10 +207,13 @@ def _cmd_up(args: argparse.Namespace) -> int:
     if args.map and args.source not in MAPPED_SIMS and (recording is None or recording.truth.poses is None):
         raise config.ConfigError(f"--map: {args.source} has no truth poses to map with (a recording with "
                                  "/truth/poses, or sim:6dof, sim:stereo, sim:rotation)")
+    if ego == "6dof" and args.source not in MAPPED_SIMS and (recording is None or recording.truth.poses is None):
+        raise config.ConfigError(f"--ego 6dof: {args.source} has no known poses to start from (a recording with "
+                                 "/truth/poses, or sim:6dof, sim:stereo)")
     if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
         opts.tracker_args = ("--cam", "cam0")
-    if args.source in EGO_SIMS:
-        opts.tracker_args += ("--ego", EGO_SIMS[args.source])
+    if ego != "off":
+        opts.tracker_args += ("--ego", ego)
     return up(opts)
 
 
@@ -505,6 +515,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-web", action="store_true", help="do not start the dashboard")
     p.add_argument("--map", action="store_true",
                    help="also run the mapper on a recording's truth poses (the simulator's 3D scenes map anyway)")
+    p.add_argument("--ego", choices=EGO_MODES,
+                   help="the camera's motion the tracker estimates: rotation, 6dof (the closed loop: the mapper maps "
+                        "from the tracker's poses, the tracker follows its map, started from the source's truth "
+                        "poses) or off; default rotation for sim:rotation, else off")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds and exit 0")
     p.add_argument("--report", metavar="FILE.json", help="write per-key and per-service counts at the end")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -543,7 +557,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "a rig of several cameras is better served by one tracker per camera, each with --name)")
     p.add_argument("--ego", default="off", choices=EGO_MODES,
                    help="camera ego-motion on tracker/ego/pose: rotation (a turning camera: angular velocity by "
-                        "contrast maximisation, tracked against a panoramic map of the events), or off (default)")
+                        "contrast maximisation, tracked against a panoramic map of the events); 6dof (the pose, by "
+                        "aligning the mapper's map, built from these poses, to the events: run a mapper with --poses "
+                        "ego --tracking-map; the camera's truth/pose starts it); or off (default)")
     p.add_argument("--object-size", action="append", metavar="[ID=]M",
                    help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
                         "M for every target, ID=M for one track id; repeatable")
@@ -563,6 +579,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the sweep takes at most this many million events per second of stream, every k-th "
                         "(so that it keeps up with the camera on few cores; 0: all; default 0.4)")
     _sweep_flags(p, "sweep")
+    p.add_argument("--tracking-map", action="store_true",
+                   help="a denser map, for a tracker --ego 6dof to follow: weaker peaks kept, seen with 10 px of "
+                        "parallax, not 20 (etam odom --mode 6dof's)")
     _mosaic_flags(p)
     p.set_defaults(func=_cmd_mapper)
 

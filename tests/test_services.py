@@ -391,3 +391,49 @@ def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: s
     paired = [(p.omega, true_omega[t]) for p in scored for t in [min(true_omega, key=lambda t: abs(t - p.t))]
               if abs(t - p.t) <= 10_000 and np.linalg.norm(true_omega[t]) > 0.3]
     assert paired and np.median([np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in paired]) < 0.1
+
+
+def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
+    """camera (a `sim 6dof` recording) -> tracker --ego 6dof <-> mapper --poses ego --tracking-map: the tracker
+    passes the camera's truth poses on until the mapper's first keyframe comes on mapper/map/keyframe, then
+    publishes poses of its own on the same stream (later than any it passed on, every 20 ms, with angular
+    velocity), going on from the truth within 10 cm over their first 0.1 s (a wrong time or frame at the
+    hand-over is tens of cm to metres off; 2-6 cm is what it does). How far they drift after is measured by
+    `etam bench --only odometry`, not asserted: live, the loop still loses its map within seconds."""
+    from services.camera.formats import open_recording
+    from services.mapper.trajectory import Trajectory
+    from services.messages import Pose
+
+    h5 = tmp_path / "6dof.h5"
+    subprocess.run(etam_argv("sim", "6dof", "--out", str(h5), "--duration", "8", "--seed", "1", "--json"),
+                   check=True, capture_output=True, timeout=300)
+    with open_recording(h5) as rec:
+        truth = rec.truth.poses
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with client_session(router) as s:
+        ego, keyframes = Collector(s, f"etam/{rig}/tracker/ego/pose"), Collector(s, f"etam/{rig}/mapper/*/keyframe")
+        with spawn("tracker", "--ego", "6dof", *common), \
+                spawn("mapper", "--poses", "ego", "--tracking-map", *common):
+            wait_alive(s, rig, 2)
+            with spawn("camera", "--source", str(h5), *common):
+                def own() -> list | None:
+                    poses = [p for p in ego.of(Pose) if not _is_truth(p, truth)]
+                    return poses if len(poses) >= 5 else None
+
+                mine = wait_for(own, 60, "5 poses of the tracker's own")
+        poses = ego.of(Pose)
+    assert keyframes.of(PointCloud) and len(keyframes.of(PointCloud)[0].points) > 500
+    passed_on = [p for p in poses if _is_truth(p, truth)]
+    assert len(passed_on) >= 25 and max(p.t for p in passed_on) < mine[0].t
+    times = [p.t for p in mine]
+    assert times == sorted(times) and set(np.diff(times)) <= {20_000, 40_000, 60_000}
+    assert [p.seq for p in poses] == list(range(poses[0].seq, poses[0].seq + len(poses)))  # one stream, no gaps
+    assert all(p.omega is not None and p.child == "cam0" for p in mine)
+    _, positions = Trajectory(truth).at(np.array(times[:5]))
+    assert np.max(np.linalg.norm(np.array([p.p for p in mine[:5]]) - positions, axis=1)) < 0.10
+
+
+def _is_truth(pose, truth: np.ndarray) -> bool:  # noqa: ANN001 - a Pose
+    """Whether `pose` is one of the truth rows (t, p), as passed on, not estimated."""
+    at = int(np.clip(np.searchsorted(truth[:, 0], pose.t / 1e6 - 1e-7), 0, len(truth) - 1))
+    return abs(truth[at, 0] - pose.t / 1e6) < 1e-6 and bool(np.allclose(truth[at, 1:4], pose.p, atol=1e-7))

@@ -113,6 +113,41 @@ def test_tracker_follows_a_moving_camera_and_is_lost_on_noise():
     assert len(lost) >= 45 and all(e.state == LOST for e in lost)
 
 
+def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone():
+    """The live loop's tracker: with known poses and no map it gives nothing (the service passes the known
+    ones on); when the first part of the map comes, it starts at that keyframe's time, catches up through the
+    events it held, and gives its own estimates from the last known pose on, within 1 cm, with the camera's
+    angular velocity; known poses after that are not taken."""
+    from services.tracker.ego.follow import MapFollower
+
+    points = box_edges()
+    velocity, omega = np.array([0.3, 0.0, 0.1]), np.radians([0.0, 10.0, 0.0])
+    events = edge_events(points, velocity, omega, 1.0)
+    follower = MapFollower(K, W, H)
+
+    def true_pose(t_us: int) -> tuple[np.ndarray, np.ndarray]:
+        return Rotation.from_rotvec(omega * t_us * 1e-6).as_quat(), velocity * t_us * 1e-6
+
+    chunks = np.array_split(events, 200)  # 5 ms each
+    for chunk in chunks[:100]:  # half a second with its known poses, no map yet
+        for t_us in range(int(chunk["t"][0]) // 10_000 * 10_000, int(chunk["t"][-1]), 10_000):
+            follower.known(t_us, *true_pose(t_us))
+        assert follower.add(chunk) == []
+    assert not follower.started
+    # the first keyframe, seen at 0.3 s, comes now (its sweep took a while)
+    follower.add_map(points, 300_000)
+    estimates = [e for chunk in chunks[100:] for e in follower.add(chunk)]
+    assert follower.started and not follower.known(600_000, *true_pose(600_000))
+    last_known = 490_000
+    assert estimates[0].t_us == last_known + 10_000 and len(estimates) >= 24
+    assert all(e.state == TRACKING for e in estimates)
+    assert {e.t_us % 20_000 for e in estimates} == {0}
+    for e in estimates:
+        q, p = true_pose(e.t_us)
+        assert np.linalg.norm(e.p - p) < 0.01
+    assert np.allclose(estimates[-1].omega, omega, atol=np.radians(1.0))
+
+
 def test_odom_6dof_command_closes_the_loop_on_the_simulator(tmp_path):
     """`etam sim 6dof` -> `etam odom --mode 6dof` -> `etam eval odometry`, as a user runs them: poses from the
     end of the known start on, none lost, within 5 cm of the truth with nothing fitted; and a file without

@@ -4,8 +4,9 @@ camera's events and a pose stream, live.
 It follows the camera's events (fifo, drop-oldest) and poses (the tracker's ego pose, or the
 simulator's truth with `--poses truth`), holds events until poses cover their time, and feeds them
 to the same keyframe sweep as `etam map`, in a worker thread so that receiving never waits on a
-sweep. Each keyframe's fused points are published on ``mapper/map/points``, and its semi-dense depth
-map (m, NaN where none; the tracker's `xyz` reads it) on ``mapper/map/depth``; ``mapper/map/all``
+sweep. Each keyframe's fused points are published on ``mapper/map/points``, its own points (the
+6-DoF tracker follows them) on ``mapper/map/keyframe``, and its semi-dense depth map (m, NaN where none;
+the tracker's `xyz` reads it) on ``mapper/map/depth``; ``mapper/map/all``
 answers with the whole map; commands `reset` and `save` (`path`: a PLY file) act on it. The map
 is a capped voxel grid, and pending events and poses are bounded too, so memory stays bounded.
 
@@ -57,6 +58,9 @@ LIVE_FIT_ITERATIONS, LIVE_PAIR_STRIDE = 2, 4  # ... on a quarter of the pairs
 MOSAIC_DUTY = 4  # ... or less often: drawing takes at most 1 / MOSAIC_DUTY of the time
 STEREO_FRAMES_PER_BATCH = 2  # a batch (WORK_PERIOD_S, longer when behind) matches at most this many stereo frames
 MODES = ("depth", "mosaic")
+# no pose for this long (or for 5 of the poses' usual spacing, if longer): the source had none (a tracker lost), so
+# the events between have none either and are dropped, and the keyframe segment with them
+POSE_GAP_US = 100_000
 
 
 class MapperService(Service):
@@ -90,6 +94,8 @@ class MapperService(Service):
         self._pending = {c: collections.deque() for c in self.cams}
         self._n_pending = dict.fromkeys(self.cams, 0)
         self._received_us = dict.fromkeys(self.cams, -1)  # each camera's latest event time so far
+        self._floor_us = -1  # events before this have no pose (a gap in the poses): never mapped
+        self._gap = False  # a gap came since the last batch: the segment held spans it
         self._wake = asyncio.Event()
         self.status = {"mode": mode, "method": method, "poses": poses, "camera": "+".join(self.cams), "keyframes": 0,
                        "map_points": 0, "dropped_events": 0}
@@ -134,12 +140,22 @@ class MapperService(Service):
                     self._clear()
                 else:
                     continue
+            if self._rows and msg.t - self._rows[-1][0] * 1e6 > self._gap_limit_us():
+                log.info("no poses from %.3f to %.3f s: the events between are not mapped", self._rows[-1][0],
+                         msg.t / 1e6)
+                self._floor_us, self._gap = msg.t, True
+                self.status["pose_gaps"] = self.status.get("pose_gaps", 0) + 1
             self._rows.append(np.array([msg.t / 1e6, *msg.p, *msg.q]))
             self._wake.set()
+
+    def _gap_limit_us(self) -> float:
+        recent = [row[0] for row in list(self._rows)[-50:]]
+        return max(POSE_GAP_US, 5e6 * float(np.median(np.diff(recent)))) if len(recent) > 2 else POSE_GAP_US
 
     async def _work(self) -> None:
         """Sweeps the events that poses cover, in a worker thread, and publishes each keyframe's points."""
         out, depth_out, mosaic_out = self.publisher("points"), self.publisher("depth"), self.publisher("mosaic")
+        keyframe_out = self.publisher("keyframe")
         while True:
             await self._wake.wait()
             await asyncio.sleep(WORK_PERIOD_S)  # a batch, not one pass (and one trajectory) per packet
@@ -156,7 +172,12 @@ class MapperService(Service):
                 continue
             taken_us = max(int(r["t"][-1]) for r in ready if len(r))
             trajectory = Trajectory(np.array(self._rows))
-            ready = [r[r["t"] >= trajectory.start_us] for r in ready]
+            ready = [r[r["t"] >= max(trajectory.start_us, self._floor_us)] for r in ready]
+            if self._gap:
+                self._gap = False
+                segment = self.mapper.keyframes if isinstance(self.mapper, StereoMapper) else self.mapper
+                if segment is not None:
+                    segment.drop()
             if self.mode == "mosaic":
                 await self._fold_mosaic(ready[0], trajectory, infos[0], mosaic_out)
                 self.status["mapped_until_us"] = taken_us
@@ -172,6 +193,9 @@ class MapperService(Service):
                 new = self.cloud.add_keyframe(kf)
                 out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
                 depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
+                # and its own points, not thinned by the map's voxels: what a 6-DoF tracker follows
+                keyframe_out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=kf.points, confidence=kf.confidence,
+                                                keyframe=_matrix(kf)))
                 log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
                          len(kf.points), len(self.cloud))
                 self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
@@ -253,6 +277,7 @@ class MapperService(Service):
         self.mosaic = None
         self._mosaic_correction = None
         self._rows.clear()
+        self._floor_us, self._gap = -1, False
         for cam in self.cams:
             self._pending[cam].clear()
             self._n_pending[cam] = 0

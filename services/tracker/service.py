@@ -1,6 +1,8 @@
 """The tracker service: object tracks from the camera's event packets (``tracker/objects/tracks``),
-and with `ego="rotation"` the camera's own rotation (``tracker/ego/pose``, a Pose with `omega` for every
-estimate, 100 Hz; see `ego/rotation.py`).
+and with `ego` the camera's own motion (``tracker/ego/pose``, a Pose with `omega` for every estimate):
+"rotation", its orientation at 100 Hz (`ego/rotation.py`); "6dof", its pose at 50 Hz, aligned to the map
+that the mapper service builds from these poses (`ego/follow.py`: the live tracking-mapping loop, started
+from the camera's known poses until the mapper's first points come).
 
 Each track gets a 3D position (`xyz`, camera frame) when it can: from the latest depth image of the
 same camera (the mapper's, or a simulator's truth) where the box holds valid depth, else from a
@@ -16,22 +18,28 @@ frame) where the camera's time goes back.
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from services import events as ev_ops
 from services import keys
 from services.camera.filters import Undistort
-from services.messages import (CameraInfo, Command, EventPacket, Image, MessageError, Pose, Reply, Tracks,
-                               image_to_array)
-from services.runtime import Service, ServiceOptions
+from services.messages import (CameraInfo, Command, EventPacket, Image, MessageError, PointCloud, Pose, Reply,
+                               Tracks, image_to_array)
+from services.runtime import Output, Service, ServiceOptions
 from services.tracker.ego import MODES as EGO_MODES
+from services.tracker.ego.follow import MapFollower
 from services.tracker.ego.rotation import LOST, STATES, RotationParams, RotationTracker
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
 
 log = logging.getLogger(__name__)
+
+# 6-DoF: event packets (and known poses) kept while the camera's intrinsics are not known yet (seconds of them)
+EARLY_PACKETS = 4_000
 
 
 @dataclass
@@ -80,7 +88,9 @@ class TrackerService(Service):
         if ego not in EGO_MODES:
             raise ValueError(f"ego-motion {ego!r} is not one of {', '.join(EGO_MODES)}")
         self.ego = ego
-        self.rotation: RotationTracker | None = None
+        self.motion: RotationTracker | MapFollower | None = None
+        self.followed = ""  # the camera whose motion it follows
+        self._early_known: collections.deque[Pose] = collections.deque(maxlen=EARLY_PACKETS)  # before intrinsics
         self.tracker_params = params or TrackerParams()
         self.cam = cam
         self.sizes = sizes or ObjectSizes()
@@ -93,45 +103,91 @@ class TrackerService(Service):
                        "frames": self.tracker_params.frames, "detector": self.tracker_params.detector}
 
     async def main(self) -> None:
+        ego = ()
+        if self.ego != "off":
+            poses = self.publisher(keys.key(self.rig, "tracker", "ego", "pose"))
+            ego = (self._ego(poses), *((self._known_poses(poses), self._map_parts()) if self.ego == "6dof" else ()))
         await asyncio.gather(self._track(), self.follow_cameras(self.cam, self.cameras, self._missing_intrinsics),
-                             self._depths(), *((self._ego(),) if self.ego != "off" else ()))
+                             self._depths(), *ego)
 
     def _missing_intrinsics(self) -> bool:
         """Whether a camera sending events (or none yet) has no known intrinsics."""
         return not self.streams or any(_camera(key) not in self.cameras for key in self.streams)
 
-    async def _ego(self) -> None:
-        """Rotation estimates of the first camera that sends events (one, even where `cam` matches several:
-        a rig turns as one), published as Poses on ``tracker/ego/pose``."""
-        out = self.publisher(keys.key(self.rig, "tracker", "ego", "pose"))
-        followed, last_us, waiting, undistort = "", -1, False, None
+    async def _ego(self, out: Output) -> None:
+        """Ego-motion estimates of the first camera that sends events (one, even where `cam` matches several:
+        a rig moves as one), published as Poses on ``tracker/ego/pose`` (`out`)."""
+        last_us, undistort = -1, None
+        early: collections.deque[np.ndarray] = collections.deque(maxlen=EARLY_PACKETS)
         async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo",
                                              maxsize=1024):
             assert isinstance(msg, EventPacket)
             cam = _camera(key)
-            followed = followed or cam
-            if cam != followed or self.paused:
+            self.followed = self.followed or cam
+            if cam != self.followed or self.paused:
                 continue
             info = self.cameras.get(cam)
             if info is None:
-                if not waiting:
+                if not early:
                     log.info("ego-motion of %s waits for its intrinsics", cam)
-                waiting = True
+                if self.ego == "6dof":  # the first events make the first map: held for the follower to come
+                    early.append(msg.events)
                 continue
-            if self.rotation is None or msg.stamp < last_us:
-                log.info("ego-motion (rotation) of %s from %d us on", cam, msg.stamp)
-                self.rotation = RotationTracker(info.K, info.width, info.height, RotationParams())
+            if self.motion is None or msg.stamp < last_us:
+                log.info("ego-motion (%s) of %s from %d us on", self.ego, cam, msg.stamp)
+                self.motion = (RotationTracker(info.K, info.width, info.height, RotationParams())
+                               if self.ego == "rotation" else MapFollower(info.K, info.width, info.height))
                 undistort = Undistort.needed(info.width, info.height, info.K, info.dist_model, info.dist)
+                if isinstance(self.motion, MapFollower):
+                    log.info("6-DoF ego-motion of %s starts once the mapper's first points come; until then it "
+                             "passes on the camera's known poses (%s)", cam, keys.key(self.rig, "camera", cam,
+                                                                                     "truth/pose"))
+                    for pose in self._early_known:
+                        self.motion.known(pose.t, pose.q, pose.p)
+            self._early_known.clear()
             last_us = msg.stamp
-            events = undistort(msg.events) if undistort is not None else msg.events
-            for est in await asyncio.to_thread(self.rotation.add, events):
+            events = ev_ops.concat([*early, msg.events]) if early else msg.events
+            early.clear()
+            events = undistort(events) if undistort is not None else events
+            for est in await asyncio.to_thread(self.motion.add, events):
                 if est.state == LOST and self.status.get("ego_state") != STATES[LOST]:
-                    log.warning("ego-motion of %s lost: its events are no sharper for any rotation", cam)
+                    log.warning("ego-motion of %s lost: %s", cam, "its events are no sharper for any rotation"
+                                if self.ego == "rotation" else "the map does not line up with its events")
                 self.status["ego_state"] = STATES[est.state]
                 if est.state == LOST:  # no pose: the events say nothing of the motion (see rotation.LOST)
                     self.status["ego_lost"] = self.status.get("ego_lost", 0) + 1
                     continue
-                out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.zeros(3), q=est.quat, child=cam, omega=est.omega))
+                row = est.tum_row()  # t, position, quaternion
+                out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.array(row[1:4]), q=np.array(row[4:]), child=cam,
+                                 omega=est.omega))
+
+    async def _known_poses(self, out: Output) -> None:
+        """The followed camera's known poses (a simulator's truth) are the 6-DoF loop's until its map comes:
+        passed on to ``tracker/ego/pose`` (`out`, the estimates' own), where the mapper sweeps its first
+        keyframe with them."""
+        async for key, msg in self.subscribe(keys.key(self.rig, "camera", "*", "truth/pose"), Pose, policy="fifo",
+                                             maxsize=1024):
+            assert isinstance(msg, Pose)
+            motion, cam = self.motion, _camera(key)
+            if cam != (self.followed or cam):
+                continue
+            if motion is None:  # before the camera's intrinsics: kept for the follower to come, and passed on
+                if self._early_known and msg.t <= self._early_known[-1].t:
+                    continue
+                self._early_known.append(msg)
+            elif not (isinstance(motion, MapFollower) and motion.known(msg.t, msg.q, msg.p)):
+                continue
+            self.status["ego_state"] = "starting"
+            out.publish(Pose(t=msg.t, stamp=msg.t, p=msg.p, q=msg.q, child=cam, omega=msg.omega))
+
+    async def _map_parts(self) -> None:
+        """Each keyframe's points from the mapper join the 6-DoF tracker's map."""
+        async for _, msg in self.subscribe(keys.key(self.rig, "mapper", "*", "keyframe"), PointCloud,
+                                           policy="fifo", maxsize=64):
+            assert isinstance(msg, PointCloud)
+            if isinstance(self.motion, MapFollower):
+                self.motion.add_map(msg.points, msg.t)
+                self.status["ego_map_parts"] = self.motion.map_parts
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
@@ -204,7 +260,7 @@ class TrackerService(Service):
         if cmd.op == "reset":
             for stream in self.streams.values():
                 stream.tracker.reset()
-            self.rotation = None  # ego-motion starts again from the next packet
+            self.motion = None  # ego-motion starts again from the next packet
             return Reply(ok=True)
         return None
 

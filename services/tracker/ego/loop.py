@@ -11,29 +11,31 @@ without poses. Each new keyframe's points join the tracker's map.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from services import events as ev_ops
-from services.mapper import sweep
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.trajectory import Trajectory
 from services.tracker.ego.sixdof import TRACKING, PoseEstimate, SixDofParams, SixDofTracker
 
 
-def _loop_keyframes() -> KeyframeParams:
+def tracking_map(params: KeyframeParams | None = None) -> KeyframeParams:
+    """Keyframe settings (from `params`, or the defaults) for a map the 6-DoF tracker follows, here or in the
+    mapper service (`--tracking-map`)."""
     # a keyframe's points are what the tracker aligns to, and a sparse map let it drift: the loop keeps peaks
     # half as high over their neighbourhood and seen with 10 px of parallax, not 20 (dev seeds 1-3, 1.5 s known:
     # 2.9, 0.9 and 5.9 % ATE, against 12.6, 2.4 and 2.7 % with the mapper's defaults)
-    return KeyframeParams(sweep=sweep.SweepParams(threshold=0.05, min_parallax_px=10.0))
+    base = params or KeyframeParams()
+    return replace(base, sweep=replace(base.sweep, threshold=0.05, min_parallax_px=10.0))
 
 
 @dataclass
 class LoopParams:
     tracker: SixDofParams = field(default_factory=SixDofParams)
-    keyframes: KeyframeParams = field(default_factory=_loop_keyframes)
+    keyframes: KeyframeParams = field(default_factory=tracking_map)
 
 
 class MappedOdometry:
@@ -86,10 +88,8 @@ class MappedOdometry:
         last = self.mapper.flush(self.known) if self.keyframes else self.mapper.finish(self.known)
         if last is not None:
             self._keyframe(last)
-        end, step = self.known.end_us, self.params.tracker.step_us
-        (R1,), (p1,) = self.known.at(end)
-        (R0,), (p0,) = self.known.at(end - step)
-        self.tracker.start(end, R1, p1, (end - step, R0, p0))
+        end = self.known.end_us
+        self.tracker.start_on(self.known, end)
         times = np.unique(np.append(self.known.t_us[self.known.t_us <= end], end))
         R, p = self.known.at(times)
         quats = Rotation.from_matrix(R).as_quat()

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from services.mapper.trajectory import Trajectory
 from services.tracker.ego.rotation import LOST, TRACKING  # an estimate's states, as the rotation tracker's
 
 
@@ -65,6 +66,7 @@ class PoseEstimate:
     state: int
     inliers: float  # share of the aligned map points that landed on an edge, beyond chance (see `min_inliers`)
     points: int  # map points aligned
+    omega: np.ndarray  # angular velocity (rad/s, camera frame) over the good poses kept; zeros when lost
 
     def tum_row(self) -> list[float]:
         """t tx ty tz qx qy qz qw."""
@@ -181,6 +183,13 @@ class SixDofTracker:
         self.next_us = t_us + self.params.step_us
         self.state = TRACKING
 
+    def start_on(self, known: Trajectory, t_us: int) -> None:
+        """At `t_us` of a known motion, with its pose `step_us` before for the first velocity."""
+        step = self.params.step_us
+        (R1,), (p1,) = known.at(t_us)
+        (R0,), (p0,) = known.at(t_us - step)
+        self.start(t_us, R1, p1, (t_us - step, R0, p0))
+
     def add_points(self, points: np.ndarray) -> None:
         """World points of one more keyframe of the map; only the latest `map_keyframes` are kept."""
         points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -244,9 +253,13 @@ class SixDofTracker:
         enough = share >= (p.recover_inliers if recovered else p.min_inliers)
         held = enough and (recovered or (moved <= p.max_jump_m and turn <= p.max_jump_deg))
         self.state = TRACKING if held else LOST
+        omega = np.zeros(3)
         if held:
             self._poses = [*([] if recovered else self._poses), (t_us, R, t)][-p.velocity_updates - 1:]
-        return PoseEstimate(t_us, R.T, -R.T @ t, self.state, share, len(points))
+            (ta, Ra, _), (tb, Rb, _) = self._poses[0], self._poses[-1]
+            if tb > ta:  # the turn from the oldest kept camera to the latest, in the camera's frame
+                omega = cv2.Rodrigues(Ra @ Rb.T)[0].ravel() / ((tb - ta) / 1e6)
+        return PoseEstimate(t_us, R.T, -R.T @ t, self.state, share, len(points), omega)
 
     def _visible(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """A random sample of up to `max_points` map points in view from T_cam_world (R, t)."""

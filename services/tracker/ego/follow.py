@@ -1,0 +1,93 @@
+"""The tracking half of the live tracking-mapping loop: the 6-DoF tracker follows a map that another
+process (the mapper service) builds from this tracker's poses.
+
+Bootstrapping is a first map from a short known motion, as `etam odom --mode 6dof` does, split over
+the two processes: until the map's first part (a keyframe's points) comes, the known poses (the
+simulator's truth) are what the loop runs on (the tracker service passes them on, and the mapper sweeps
+its first keyframe with them), and the events are held. Then the tracker starts at that keyframe's time,
+where its map fits the events best, at the known pose there (with the one `step_us` before it for its
+first velocity), catches up through the held events, and gives its estimates from the last known pose
+on; no known pose is used after. Each later part of the map joins the tracker's map.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import numpy as np
+
+from services import events as ev_ops
+from services.mapper.trajectory import Trajectory
+from services.tracker.ego.sixdof import PoseEstimate, SixDofParams, SixDofTracker
+
+KNOWN_KEPT = 1_000  # known poses kept before the start (20 s of them at 50 Hz)
+# events held before the start: the latest this long (from the first keyframe's time, half its segment back, to
+# when its sweep is done, live)
+HELD_US = 4_000_000
+
+
+class MapFollower:
+    """Known poses and map parts in, events (undistorted, sorted) in; 6-DoF estimates out once started.
+    `known` and `add_map` may be called while `add` runs in another thread."""
+
+    def __init__(self, K: np.ndarray, width: int, height: int, params: SixDofParams | None = None) -> None:
+        self.tracker = SixDofTracker(K, width, height, params)
+        self._known: collections.deque[list[float]] = collections.deque(maxlen=KNOWN_KEPT)  # TUM rows
+        self._lock = threading.Lock()  # the known poses, and whether it started
+        self._started = False
+        self._held: collections.deque[np.ndarray] = collections.deque()
+        self._first_map_us: int | None = None  # the first part's keyframe time
+        self._known_until_us = -1  # estimates are given from after the last known pose on
+        self.map_parts = 0  # how many parts of the map (keyframes) came so far
+
+    @property
+    def started(self) -> bool:
+        return self._started
+
+    def known(self, t_us: int, q: np.ndarray, p: np.ndarray) -> bool:
+        """A known pose (T_world_cam, quaternion x y z w): whether the loop runs on it (before the start)."""
+        with self._lock:
+            if self._started or (self._known and t_us <= self._known[-1][0] * 1e6):
+                return False
+            self._known.append([t_us / 1e6, *np.asarray(p, float), *np.asarray(q, float)])
+            return True
+
+    def add_map(self, points: np.ndarray, t_us: int) -> None:
+        """World points (N x 3) of one more part of the map, seen from its keyframe at `t_us`."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        if len(points):
+            self.tracker.add_points(points)
+            self.map_parts += 1
+            if self._first_map_us is None:
+                self._first_map_us = int(t_us)
+
+    def add(self, events: np.ndarray) -> list[PoseEstimate]:
+        """Events sorted by time; the estimates of the updates they completed (none before the start)."""
+        if self._started:
+            return self._after_known(self.tracker.add(events))
+        if len(events):
+            self._held.append(events)
+            while int(events["t"][-1]) - int(self._held[0]["t"][-1]) > HELD_US:
+                self._held.popleft()
+        if self._first_map_us is None or len(self._known) < 2 or not self._held:
+            return []
+        return self._start()
+
+    def _start(self) -> list[PoseEstimate]:
+        with self._lock:
+            known = Trajectory(np.asarray(self._known))
+            self._started = True
+        held = ev_ops.concat(list(self._held))
+        self._held.clear()
+        step = self.tracker.params.step_us
+        # the first keyframe's time, unless its events or poses are no longer held
+        t_us = min(max(self._first_map_us, int(held["t"][0]), known.start_us + step), known.end_us)
+        t_us -= t_us % step  # on the update grid of `etam odom`
+        self.tracker.start_on(known, t_us)
+        self._known_until_us = known.end_us
+        return self._after_known(self.tracker.add(held))
+
+    def _after_known(self, estimates: list[PoseEstimate]) -> list[PoseEstimate]:
+        """Those after the last known pose (the held events may end before it: the known poses run ahead)."""
+        return [est for est in estimates if est.t_us > self._known_until_us]
