@@ -16,6 +16,10 @@ after) and scored by `etam eval odometry`: ATE with the first poses made equal (
 the known start's, so nothing is fitted), and after SE(3) and Sim(3) alignment, as % of the distance
 travelled; updates lost; RPE. Its speed: alignment updates per CPU second on one core over the same
 stream in 1 ms packets, the map given (the mapper's sweep, a separate service live, not counted).
+The same seeds live: `etam up --source FILE.h5 --ego 6dof` (camera, tracker and mapper processes, the file
+in real time); the tracker's own poses scored the same way, with when they began (the known start lasts
+until the mapper's first keyframe comes), how many updates were lost from then to the end, and the RMS
+error of their angular velocity.
 No peer library on PyPI estimates camera motion from events, so no ratio is given.
 """
 
