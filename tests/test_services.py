@@ -437,3 +437,23 @@ def _is_truth(pose, truth: np.ndarray) -> bool:  # noqa: ANN001 - a Pose
     """Whether `pose` is one of the truth rows (t, p), as passed on, not estimated."""
     at = int(np.clip(np.searchsorted(truth[:, 0], pose.t / 1e6 - 1e-7), 0, len(truth) - 1))
     return abs(truth[at, 0] - pose.t / 1e6) < 1e-6 and bool(np.allclose(truth[at, 1:4], pose.p, atol=1e-7))
+
+
+def test_mapper_ends_its_segment_where_a_keyframe_is_asked_for(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
+    """`keyframe` with `until_us` (what a 6-DoF tracker asks at the end of its known start): the first keyframe
+    is swept from the events up to then, its reference view in their middle, not a baseline of travel later
+    (on this recording at 0.85 s); a malformed request is refused with what to give."""
+    h5 = tmp_path / "6dof.h5"
+    subprocess.run(etam_argv("sim", "6dof", "--out", str(h5), "--duration", "2.5", "--seed", "1", "--json"),
+                   check=True, capture_output=True, timeout=300)
+    common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
+    with client_session(router) as s, spawn("mapper", "--poses", "truth", "--tracking-map", *common):
+        keyframes = Collector(s, f"etam/{rig}/mapper/*/keyframe")
+        cmd = f"etam/{rig}/mapper/map/cmd"
+        bad = _query(s, cmd, Command(op="keyframe", args={"until_us": "soon"}))
+        assert isinstance(bad, Reply) and not bad.ok and "until_us" in bad.error
+        asked = _query(s, cmd, Command(op="keyframe", args={"until_us": 1_000_000}))
+        assert isinstance(asked, Reply) and asked.ok
+        with spawn("camera", "--source", str(h5), *common):
+            first = wait_for(lambda: keyframes.of(PointCloud)[:1], 30, "the first keyframe")[0]
+    assert 400_000 < first.t < 650_000 and len(first.points) > 300

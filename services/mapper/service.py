@@ -44,7 +44,7 @@ from services.mapper.warmup import warm_up
 from services.messages import (
     EVENT_DTYPE, CameraInfo, Command, EventPacket, Message, PointCloud, Pose, Reply, image_from_array,
 )
-from services.runtime import Service, ServiceOptions
+from services.runtime import Output, Service, ServiceOptions
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,7 @@ class MapperService(Service):
         self._received_us = dict.fromkeys(self.cams, -1)  # each camera's latest event time so far
         self._floor_us = -1  # events before this have no pose (a gap in the poses): never mapped
         self._gap = False  # a gap came since the last batch: the segment held spans it
+        self._cut_us: int | None = None  # a keyframe was asked for: the segment ends once mapped up to here
         self._wake = asyncio.Event()
         self.status = {"mode": mode, "method": method, "poses": poses, "camera": "+".join(self.cams), "keyframes": 0,
                        "map_points": 0, "dropped_events": 0}
@@ -190,16 +191,24 @@ class MapperService(Service):
                     self.status["error"] = str(exc)
                     continue
             for kf in await asyncio.to_thread(self._map, ready, trajectory):
-                new = self.cloud.add_keyframe(kf)
-                out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
-                depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
-                # and its own points, not thinned by the map's voxels: what a 6-DoF tracker follows
-                keyframe_out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=kf.points, confidence=kf.confidence,
-                                                keyframe=_matrix(kf)))
-                log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
-                         len(kf.points), len(self.cloud))
-                self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
+                self._publish_keyframe(kf, out, depth_out, keyframe_out)
+            if self._cut_us is not None and taken_us >= self._cut_us and isinstance(self.mapper, KeyframeMapper):
+                self._cut_us = None
+                if self.mapper.held:
+                    for kf in [await asyncio.to_thread(self.mapper.finish, trajectory)]:
+                        self._publish_keyframe(kf, out, depth_out, keyframe_out)
             self.status["mapped_until_us"] = taken_us  # every event up to here is in the map (or its segment)
+
+    def _publish_keyframe(self, kf: Keyframe, out: Output, depth_out: Output, keyframe_out: Output) -> None:
+        new = self.cloud.add_keyframe(kf)
+        out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=new, keyframe=_matrix(kf)))
+        depth_out.publish(image_from_array(kf.t_us, kf.depth, "rawf32"))  # the tracker's xyz reads it
+        # and its own points, not thinned by the map's voxels: what a 6-DoF tracker follows
+        keyframe_out.publish(PointCloud(t=kf.t_us, stamp=kf.t_us, points=kf.points, confidence=kf.confidence,
+                                        keyframe=_matrix(kf)))
+        log.info("keyframe %d at %.3f s: %d points, map %d", len(self.cloud.views), kf.t_us / 1e6,
+                 len(kf.points), len(self.cloud))
+        self.status.update(keyframes=len(self.cloud.views), map_points=len(self.cloud))
 
     def _map(self, ready: list[np.ndarray], trajectory: Trajectory) -> list[Keyframe]:
         """The keyframes a batch completes, its work bounded so that the mapper keeps up with the camera:
@@ -287,6 +296,13 @@ class MapperService(Service):
         if cmd.op == "reset":
             self._clear()
             return Reply(ok=True)
+        if cmd.op == "keyframe":  # end the segment held once mapped up to `until_us` (default: now)
+            until = (cmd.args or {}).get("until_us", self.status.get("received_until_us", 0))
+            if not isinstance(until, int) or self.mode != "depth":
+                return Reply(ok=False, error="keyframe: a depth map's, with args {'until_us': int} or none")
+            self._cut_us = until
+            self._wake.set()
+            return Reply(ok=True, result={"until_us": until})
         if cmd.op == "save":
             path = (cmd.args or {}).get("path")
             if not isinstance(path, str) or not path:

@@ -90,6 +90,7 @@ class TrackerService(Service):
         self.ego = ego
         self.motion: RotationTracker | MapFollower | None = None
         self.followed = ""  # the camera whose motion it follows
+        self._asking: asyncio.Future | None = None  # the query for a first keyframe
         self._early_known: collections.deque[Pose] = collections.deque(maxlen=EARLY_PACKETS)  # before intrinsics
         self.tracker_params = params or TrackerParams()
         self.cam = cam
@@ -165,6 +166,7 @@ class TrackerService(Service):
         """The followed camera's known poses (a simulator's truth) are the 6-DoF loop's until its map comes:
         passed on to ``tracker/ego/pose`` (`out`, the estimates' own), where the mapper sweeps its first
         keyframe with them."""
+        asked = None  # the follower the first keyframe was asked for
         async for key, msg in self.subscribe(keys.key(self.rig, "camera", "*", "truth/pose"), Pose, policy="fifo",
                                              maxsize=1024):
             assert isinstance(msg, Pose)
@@ -179,6 +181,16 @@ class TrackerService(Service):
                 continue
             self.status["ego_state"] = "starting"
             out.publish(Pose(t=msg.t, stamp=msg.t, p=msg.p, q=msg.q, child=cam, omega=msg.omega))
+            if isinstance(motion, MapFollower) and motion.wants_map and asked is not motion:
+                asked = motion  # once per follower: the mapper ends its segment at this pose
+                self._asking = asyncio.ensure_future(self._ask_keyframe(msg.t))  # held: a task nobody holds may go
+
+    async def _ask_keyframe(self, t_us: int) -> None:
+        """Asks the rig's mappers for a keyframe of the events up to `t_us` (the end of the known start)."""
+        replies = await self.query(keys.key(self.rig, "mapper", "*", "cmd"), Reply,
+                                   request=Command(op="keyframe", args={"until_us": int(t_us)}))
+        if not any(isinstance(r, Reply) and r.ok for _, r in replies):
+            log.warning("no mapper took the request for a first keyframe: the first comes a baseline later")
 
     async def _map_parts(self) -> None:
         """Each keyframe's points from the mapper join the 6-DoF tracker's map."""

@@ -4,10 +4,11 @@ process (the mapper service) builds from this tracker's poses.
 Bootstrapping is a first map from a short known motion, as `etam odom --mode 6dof` does, split over
 the two processes: until the map's first part (a keyframe's points) comes, the known poses (the
 simulator's truth) are what the loop runs on (the tracker service passes them on, and the mapper sweeps
-its first keyframe with them), and the events are held. Then the tracker starts at that keyframe's time,
-where its map fits the events best, at the known pose there (with the one `step_us` before it for its
-first velocity), catches up through the held events, and gives its estimates from the last known pose
-on; no known pose is used after. Each later part of the map joins the tracker's map.
+its first keyframe with them, asked for after `BOOTSTRAP_US` of known motion), and the events are held.
+Then the tracker starts at that keyframe's time, where its map fits the events best, at the known pose
+there (with the one `step_us` before it for its first velocity), catches up through the held events,
+and gives its estimates from the last known pose on; no known pose is used after. Each later part of
+the map joins the tracker's map.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from services import events as ev_ops
 from services.mapper.trajectory import Trajectory
 from services.tracker.ego.sixdof import PoseEstimate, SixDofParams, SixDofTracker
 
+BOOTSTRAP_US = 1_500_000  # known motion after which the first keyframe is asked for (`etam odom --bootstrap`'s)
 KNOWN_KEPT = 1_000  # known poses kept before the start (20 s of them at 50 Hz)
 # events held before the start: the latest this long (from the first keyframe's time, half its segment back, to
 # when its sweep is done, live)
@@ -44,6 +46,14 @@ class MapFollower:
     @property
     def started(self) -> bool:
         return self._started
+
+    @property
+    def wants_map(self) -> bool:
+        """Whether the known motion is long enough for a first keyframe that has not come yet: the mapper is
+        asked to end its segment there (as `etam odom` does after `--bootstrap` s), not a baseline later."""
+        with self._lock:
+            span = (self._known[-1][0] - self._known[0][0]) * 1e6 if self._known else 0.0
+        return self._first_map_us is None and span >= BOOTSTRAP_US
 
     def known(self, t_us: int, q: np.ndarray, p: np.ndarray) -> bool:
         """A known pose (T_world_cam, quaternion x y z w): whether the loop runs on it (before the start)."""
