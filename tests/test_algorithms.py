@@ -908,3 +908,21 @@ def test_split_by_motion_finds_two_targets_moving_apart_in_one_blob_and_none_in_
 
     one = [(a, (60, 80), va)]
     assert split_by_motion(frame(-dt_s, one), frame(0.0, one), (60, 80, 40, 40), dt_s, MotionParams()) is None
+
+
+def test_a_moving_targets_reported_box_drops_the_trail_its_motion_leaves() -> None:
+    """A box of recent pixels holds the target and where it was over the last ~55 ms: longer along its path and
+    behind it. The reported box is the target's own; a still target's box is as measured, and a target coming
+    in at a border (its trail outside the image) is not cut."""
+    mot = MultiObjectTracker(width=346, height=260)
+    trail = 300 * mot.params.trail_us / 1e6  # px behind a target moving right at 300 px/s
+    for i in range(20):
+        x = 60 + 3 * i  # the target's left edge
+        tracks = mot.update(i * 10_000, np.array([[x - trail, 100, 30 + trail, 20]], np.float32))
+    assert mot.seen_box(tracks[0]) == pytest.approx((60 + 3 * 19, 100, 30, 20), abs=1.5)
+    still = MultiObjectTracker(width=346, height=260)
+    tracks = _follow(still, 0, [100, 100, 30, 20], [0, 0, 0, 0], 20)
+    assert still.seen_box(tracks[0]) == pytest.approx((100, 100, 30, 20), abs=0.1)
+    coming_in = MultiObjectTracker(width=346, height=260)
+    tracks = _follow(coming_in, 0, [0, 100, 6, 20], [0, 0, 3, 0], 8)  # grows out of the left border
+    assert coming_in.seen_box(tracks[0]) == pytest.approx(tuple(tracks[0].box), abs=0.1)

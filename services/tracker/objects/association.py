@@ -60,6 +60,8 @@ LEFT, TOP, RIGHT, BOTTOM = 1, 2, 4, 8  # the image borders a box touches, as bit
 CUT_X, CUT_Y = LEFT | RIGHT, TOP | BOTTOM  # borders that cut a box's width, its height
 WHOLE = 0.9  # a box this share of its track's usual size or more shows the whole target
 SIZE_MEMORY = 32  # measurements of a track's size kept for re-identification
+BORDER_PX = 3  # a box this near an image border touches it: a target's edge fades out a pixel or two before it goes
+PATH_UPDATES = 8  # updates of a track's centre kept, for `MultiObjectTracker.seen_box`
 _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
@@ -94,6 +96,10 @@ class AssociationParams:
     reid_margin: float = 0.5
     # a track sharing a detection with less than this share of its box outside the others' is hidden behind them
     hidden_share: float = 0.2
+    # a box of recent pixels is longer than its target by about its motion over this time, and lags by half that
+    # (measured on fresh simulated seeds: the excess over speed was 60-75 ms at 50-250 px/s); reported boxes, and
+    # the borders a track coming in is taken to touch, drop it
+    trail_us: float = 55_000.0
     velocity_gain: float = 0.3  # weight of a new velocity measurement
     size_gain: float = 0.5  # weight of a new size measurement
     fragment_area: float = 0.5  # a detection this much smaller than a track, inside it, is a fragment
@@ -147,6 +153,7 @@ class Track:
     widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     entering: bool = False  # confirmed young at a border and not (yet) known as a target that left
+    path: deque[tuple[int, float, float]] = field(default_factory=lambda: deque(maxlen=PATH_UPDATES))  # t, centre
     moved_as_one_us: int = -(1 << 62)  # when its blob's points were last found moving one way (see `_split_by_motion`)
 
     def full_size(self, axis: int) -> float | None:
@@ -361,6 +368,8 @@ class MultiObjectTracker:
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
                 self._unseen(tr, pred[ti], t_us, observed)
         self.tracks = [tr for tr in self.tracks if tr.state != _GONE]
+        for tr in self.tracks:
+            tr.path.append((t_us, *_centre(tr.box)))
         for di, det in enumerate(dets):
             if di not in used:
                 self.tracks.append(Track(self._next_id, det, t_us, first_seen_us=t_us, last_seen_us=t_us))
@@ -605,6 +614,7 @@ class MultiObjectTracker:
             tr.vel = ((1 - g) * tr.vel[0] + g * dx / dt_s, (1 - g) * tr.vel[1] + g * dy / dt_s)
         elif tr.state == LOST:
             tr.vel = (0.0, 0.0)
+            tr.path.clear()  # found again elsewhere: it did not move there
         if tr.state == LOST or tr.hits < p.confirm_hits:
             tr.box = box
         else:
@@ -624,7 +634,7 @@ class MultiObjectTracker:
             if tr.state == TENTATIVE or tr.entering:  # one coming in at a border may be one that left
                 nearer = self._occluders(tr)
                 found = self._reidentify(tr) or self._out_from_behind(tr, nearer) or self._seen_before(tr)
-                tr.entering = (not found and bool(self._sides(tr.box) or nearer)
+                tr.entering = (not found and bool(self._seen_sides(tr) or nearer)
                                and t_us - tr.first_seen_us < p.young_us)
             tr.state = TRACKED
 
@@ -652,6 +662,31 @@ class MultiObjectTracker:
             pred = tr.predict(t_us)
         self._coast(tr, pred, t_us)
         tr.score *= 0.995
+
+    def seen_box(self, tr: Track) -> Box:
+        """Its box without the trail its motion leaves in the image: a box of recent pixels also holds where
+        the target was over the last `trail_us`, so it is longer along its path by how far its box moved in
+        that time, and lags by half that. The move is measured (a velocity kept while the box was placed
+        among others, not measured, may be stale); no trail where the box's trailing side is at a border
+        (a target coming in: its trail is outside)."""
+        trail_us = self.params.trail_us
+        older = [c for c in tr.path if c[0] < tr.t_us]
+        if not older:
+            return tr.box
+        then = next((c for c in reversed(older) if tr.t_us - c[0] >= trail_us), older[0])
+        cx, cy = _centre(tr.box)
+        # its move at that speed over the trail's time; a young track's shorter path is not stretched to it (a
+        # box's edges jitter by a pixel or two between updates, and stretched that would be the trail)
+        scale = min(trail_us / (tr.t_us - then[0]), 1.0)
+        box, sides = list(tr.box), self._sides(tr.box)
+        for axis, moved in ((0, cx - then[1]), (1, cy - then[2])):
+            if sides & ((LEFT, TOP) if moved > 0 else (RIGHT, BOTTOM))[axis]:
+                continue
+            cut = min(abs(moved) * scale, 0.5 * box[2 + axis])
+            box[2 + axis] -= cut
+            if moved > 0:
+                box[axis] += cut
+        return box[0], box[1], box[2], box[3]
 
     def reported_state(self, tr: Track) -> int:
         """The state a track is reported in: `TENTATIVE` while it comes in where a lost track may still give
@@ -681,8 +716,14 @@ class MultiObjectTracker:
         """The image borders a box touches (its target may be leaving or entering), as `LEFT`... bits."""
         if not self.width:
             return 0
-        return ((box[0] <= 1) * LEFT | (box[1] <= 1) * TOP | (box[0] + box[2] >= self.width - 1) * RIGHT
-                | (box[1] + box[3] >= self.height - 1) * BOTTOM)
+        m = BORDER_PX
+        return ((box[0] <= m) * LEFT | (box[1] <= m) * TOP | (box[0] + box[2] >= self.width - m) * RIGHT
+                | (box[1] + box[3] >= self.height - m) * BOTTOM)
+
+    def _seen_sides(self, tr: Track) -> int:
+        """The borders its box touches once its trail is dropped (`seen_box`): one beside a border, its trail
+        reaching it, is not coming in there."""
+        return self._sides(self.seen_box(tr))
 
     def _reidentify(self, new: Track) -> bool:
         """Seed 002's re-detection of a target back in view: a track coming in at a border takes the id
@@ -690,7 +731,7 @@ class MultiObjectTracker:
         not clip, and no bigger than it on the other); where two fit, only one that fits clearly better
         than the other (else it stays new, and is tried again on its next measurement while it comes
         in, as its size grows to the whole of it). Whether it took an id."""
-        sides = self._sides(new.box)
+        sides = self._seen_sides(new)
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
@@ -718,7 +759,7 @@ class MultiObjectTracker:
         it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
         that left the image, which may come back in whole by the time its new track is confirmed, or
         in a blob with another. Whether it took an id."""
-        if self._sides(new.box):
+        if self._seen_sides(new):
             return False
         since, forget = new.first_seen_us, self.params.forget_after_us
         folded = [tr for tr in self._folded if tr.last_seen_us < since and since - tr.last_seen_us < forget]
@@ -743,11 +784,13 @@ class MultiObjectTracker:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
         fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
         may cut on `new`, is not much smaller than `new`'s (`axis` None: whose sizes on both axes fit,
-        `new` seen whole); that one is removed, the sizes its id is known by going on with `new`. Whether it
-        took an id."""
+        `new` seen whole); that one is removed, the sizes its id is known by going on with `new`. Only
+        tracks once seen whole on both axes give their ids: one seen only in part (a piece of a target
+        coming in beside another, lost again) is no identity to go on with. Whether it took an id."""
         p = self.params
         limit = math.log(p.reid_size_ratio)
-        misfit = sorted((m, i) for i, tr in enumerate(lost) if (m := self._misfit(new, tr, axis)) < limit)
+        misfit = sorted((m, i) for i, tr in enumerate(lost)
+                        if tr.widths and tr.heights and (m := self._misfit(new, tr, axis)) < limit)
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = lost[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE

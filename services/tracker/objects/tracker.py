@@ -133,7 +133,7 @@ class ObjectTracker:
         return TrackSet(
             t_us=t_us,
             ids=np.array([tr.ident for tr in tracks], np.int32),
-            boxes=np.array([tr.box for tr in tracks], np.float32).reshape(-1, 4),
+            boxes=np.array([self.association.seen_box(tr) for tr in tracks], np.float32).reshape(-1, 4),
             scores=np.array([tr.score for tr in tracks], np.float32),
             vels=np.array([tr.vel for tr in tracks], np.float32).reshape(-1, 2),
             states=np.array([self.association.reported_state(tr) for tr in tracks], np.uint8),
