@@ -142,7 +142,7 @@ def _cmd_mapper(args: argparse.Namespace) -> int:
     from services.mapper.service import MapperService
     from services.tracker.ego.loop import tracking_map
 
-    params = tracking_map(_map_params(args)) if args.tracking_map else _map_params(args)
+    params = tracking_map(_map_params(args), args.method == "stereo") if args.tracking_map else _map_params(args)
     try:
         service = MapperService(_service_options(args, "map"), params, cam=args.cam, poses=args.poses,
                                 mode=args.build, mosaic_params=_mosaic_params(args), method=args.method or "sweep",
@@ -212,6 +212,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
                                  "/truth/poses, or sim:6dof, sim:stereo)")
     if len(sources) > 1:  # a rig: boxes of the first camera (Tracks carry no camera, so one camera per tracker)
         opts.tracker_args = ("--cam", "cam0")
+        if "--method" not in opts.mapper_args:  # mapped by stereo, as `etam map` maps a file of two cameras
+            opts.mapper_args += ("--method", "stereo")
     if ego != "off":
         opts.tracker_args += ("--ego", ego)
     return up(opts)
@@ -389,7 +391,7 @@ def _cmd_odom(args: argparse.Namespace) -> int:
 
     _require_files(args.input, *([args.start] if args.start else []))
     summary = odometry(Path(args.input), _output(args.out), progress=not args.json, mode=args.mode,
-                       bootstrap_s=args.bootstrap, start=Path(args.start) if args.start else None)
+                       bootstrap_s=args.bootstrap, start=Path(args.start) if args.start else None, method=args.method)
     detail = (f"{summary['still']} still" if args.mode == "rotation" else
               f"{summary['keyframes']} keyframes, first map from {summary['bootstrap_s']:g} s of known poses")
     print(json.dumps(summary) if args.json else f"wrote {summary['poses']} poses ({summary['mode']}, {detail}, "
@@ -643,6 +645,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="6dof: seconds of known poses at the start, whose events make the first map (default 1.5)")
     p.add_argument("--start", metavar="TRAJ.tum",
                    help="6dof: the known poses of the start (TUM, T_world_cam); default: the file's truth poses")
+    p.add_argument("--method", choices=("sweep", "stereo"), default=None,
+                   help="6dof: how the map is built: sweep, the space sweep of the first camera's events (EMVS); "
+                        "stereo, time-surface matching between the first two cameras (ESVO) (default: stereo for "
+                        "a file of two cameras, else sweep)")
     p.add_argument("--out", default="traj.tum", help="TUM trajectory to write (default traj.tum)")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_odom)

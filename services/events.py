@@ -7,7 +7,7 @@ helpers move each event as one opaque 13-byte item and view the result as events
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -39,3 +39,23 @@ def copy(events: np.ndarray) -> np.ndarray:
 def sort_by_time(events: np.ndarray) -> np.ndarray:
     """A new array ordered by time, stable for equal times."""
     return take(events, np.argsort(events["t"], kind="stable"))
+
+
+def paired(left: Iterator[np.ndarray], right: Iterator[np.ndarray]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Two cameras' streams of chunks (each sorted by time) as pairs: each chunk of `left` with `right`'s events
+    up to its last time, so that a consumer of both (stereo) always has each camera's up to the same time."""
+    held: list[np.ndarray] = []
+    for chunk in left:
+        if not len(chunk):
+            continue
+        until = chunk["t"][-1]
+        while not held or held[-1]["t"][-1] <= until:
+            nxt = next(right, None)
+            if nxt is None:
+                break
+            if len(nxt):
+                held.append(nxt)
+        pending = concat(held) if held else np.empty(0, chunk.dtype)
+        cut = int(np.searchsorted(pending["t"], until, side="right"))
+        held = [pending[cut:]] if cut < len(pending) else []
+        yield chunk, pending[:cut]

@@ -77,6 +77,23 @@ def test_keyframes_end_by_travel_and_a_short_tail_is_dropped() -> None:
     assert sum(kf.events for kf in done) < len(events)  # the rest waits for more travel
 
 
+def test_keyframes_end_also_by_time_where_a_span_is_set() -> None:
+    """A segment may also end by time (stereo depth needs no travel): a camera that only turns still gets
+    keyframes; without the limit it gets none."""
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-1, 2, 500), rng.uniform(-1, 1, 500), np.full(500, 3.0)])
+    t = np.linspace(0, 1.0, 51)
+    turning = Trajectory(np.column_stack([t, 0 * t, 0 * t, 0 * t, Rotation.from_euler("y", (0.1 * t)[:, None]).as_quat()]))
+    events = _events_of(points, turning, np.arange(0, 1_000_000, 5_000))
+    spans = {}
+    for span_us in (0, 300_000):
+        mapper = KeyframeMapper(K, W, H, KeyframeParams(max_span_us=span_us))
+        spans[span_us] = [kf for chunk in np.array_split(events, 5) for kf in mapper.add(chunk, turning)]
+    assert spans[0] == [] and len(spans[300_000]) == 3
+    middles = np.array([kf.t_us for kf in spans[300_000]])  # each segment's reference view: its middle time
+    assert abs(middles[0] - 150_000) < 15_000 and np.all(np.abs(np.diff(middles) - 300_000) < 15_000)
+
+
 def test_trajectory_interpolates_and_clamps() -> None:
     rows = np.array([[0.0, 0, 0, 0, *Rotation.identity().as_quat()],
                      [1.0, 2, 0, 0, *Rotation.from_euler("z", 90, degrees=True).as_quat()]])

@@ -25,6 +25,9 @@ class KeyframeParams:
     sweep: sweep.SweepParams = field(default_factory=sweep.SweepParams)
     baseline_share: float = 0.25  # a segment ends once the camera travelled this share of the scene's depth
     max_events: int = 4_000_000  # ... or held this many events (bounds memory when the camera barely moves)
+    # ... or spans this long (0: no limit); for depth that needs no travel (stereo), a map that keeps up with the
+    # camera where it turns more than it moves
+    max_span_us: int = 0
 
 
 @dataclass
@@ -61,6 +64,7 @@ class KeyframeMapper:
         """A new segment: the events held are dropped unswept, the travel counted from nothing."""
         self._chunks: list[np.ndarray] = []
         self._n = 0
+        self._t0: int | None = None  # the segment's first time
         self._last: np.ndarray | None = None  # where the camera was last seen, and how far it went in the segment
         self._travel = 0.0
 
@@ -94,6 +98,11 @@ class KeyframeMapper:
         limit = p.baseline_share * self.scene_depth
         over = np.flatnonzero(travel >= limit)
         room = p.max_events - self._n
+        if self._t0 is None:
+            self._t0 = int(events["t"][0])
+        if p.max_span_us:
+            late = np.flatnonzero(stamps - self._t0 >= p.max_span_us)
+            over = np.union1d(over, late[:1])
         if len(over):
             cut = int(over[0]) * POSE_EVERY
         else:

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from services import events as ev_ops
 from services.camera.filters import Undistort
 from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.simulator import LOG_EPS
@@ -52,7 +53,8 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
                                       params, stereo)
             except ValueError as exc:  # no pose in the rig, or a rig that cannot be rectified
                 raise FormatError(src, str(exc)) from None
-            for left, right in _paired_chunks(rig[0], rig[1], trajectory, progress):
+            for left, right in ev_ops.paired(_posed_chunks(rig[0], trajectory, progress),
+                                             _posed_chunks(rig[1], trajectory, False)):
                 n_events += len(left) + len(right)
                 for kf in mapper.add(left, right, trajectory):
                     cloud.add_keyframe(kf)
@@ -68,26 +70,6 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     n_points = write_map(out, cloud, f"etam map of {src.name} ({method}): voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "method": method, "events": n_events,
             "keyframes": len(cloud.views), "points": n_points, "poses": str(poses) if poses else "truth"}
-
-
-def _paired_chunks(left: Recording, right: Recording, trajectory: Trajectory,
-                   progress: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Both cameras' posed events, in chunks of the left camera's and the right camera's up to the same time."""
-    rights = _posed_chunks(right, trajectory, False)
-    held: list[np.ndarray] = []
-    for chunk in _posed_chunks(left, trajectory, progress):
-        if not len(chunk):
-            continue
-        until = chunk["t"][-1]
-        while not held or held[-1]["t"][-1] <= until:
-            nxt = next(rights, None)
-            if nxt is None:
-                break
-            held.append(nxt)
-        pending = np.concatenate(held) if held else np.zeros(0, chunk.dtype)
-        cut = int(np.searchsorted(pending["t"], until, side="right"))
-        held = [pending[cut:]] if cut < len(pending) else []
-        yield chunk, pending[:cut]
 
 
 def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: MosaicParams | None = None,

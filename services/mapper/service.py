@@ -176,9 +176,8 @@ class MapperService(Service):
             ready = [r[r["t"] >= max(trajectory.start_us, self._floor_us)] for r in ready]
             if self._gap:
                 self._gap = False
-                segment = self.mapper.keyframes if isinstance(self.mapper, StereoMapper) else self.mapper
-                if segment is not None:
-                    segment.drop()
+                if self.mapper is not None:
+                    self.mapper.drop()
             if self.mode == "mosaic":
                 await self._fold_mosaic(ready[0], trajectory, infos[0], mosaic_out)
                 self.status["mapped_until_us"] = taken_us
@@ -192,7 +191,7 @@ class MapperService(Service):
                     continue
             for kf in await asyncio.to_thread(self._map, ready, trajectory):
                 self._publish_keyframe(kf, out, depth_out, keyframe_out)
-            if self._cut_us is not None and taken_us >= self._cut_us and isinstance(self.mapper, KeyframeMapper):
+            if self._cut_us is not None and taken_us >= self._cut_us:
                 self._cut_us = None
                 if self.mapper.held:
                     for kf in [await asyncio.to_thread(self.mapper.finish, trajectory)]:

@@ -218,6 +218,10 @@ class StereoMatcher:
             surface.add(events[k:])
         return np.concatenate(out) if out else np.zeros(0, ESTIMATE_DTYPE)
 
+    def restart(self) -> None:
+        """The next frame comes `every_ms` after the next events given (the time surfaces keep what they hold)."""
+        self._next_us = None
+
     def frame(self, t_us: int, trajectory: Trajectory) -> np.ndarray:
         """The estimates of the stereo frame at `t_us` (the surfaces hold every event up to it)."""
         p = self.params
@@ -258,6 +262,20 @@ class StereoMapper:
 
     def flush(self, trajectory: Trajectory) -> Keyframe | None:
         return self.keyframes.flush(trajectory)
+
+    def finish(self, trajectory: Trajectory) -> Keyframe:
+        """The keyframe of the estimates held so far (the segment ends here)."""
+        return self.keyframes.finish(trajectory)
+
+    @property
+    def held(self) -> int:
+        return self.keyframes.held
+
+    def drop(self) -> None:
+        """A spell without poses: the segment held ends unfused, and stereo frames start again with the next
+        events (a frame in the spell would be placed by a pose nobody knows)."""
+        self.keyframes.drop()
+        self.matcher.restart()
 
 
 def fuse_keyframe(estimates: np.ndarray, trajectory: Trajectory, K: np.ndarray, width: int, height: int,

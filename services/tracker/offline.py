@@ -3,20 +3,24 @@ TUM trajectory), `etam eval tracking` and `etam eval odometry`."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from services import events as ev_ops
 from services.camera.filters import Undistort
 from services.camera.formats import FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.mapper.trajectory import Trajectory, read_tum, write_tum
 from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
-from services.tracker.ego.loop import LoopParams, MappedOdometry
+from services.mapper.offline import METHODS as MAP_METHODS
+from services.mapper.stereo import StereoMapper, relative_pose
+from services.tracker.ego.loop import LoopParams, MappedOdometry, tracking_map
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
@@ -60,29 +64,34 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
 
 def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True,
              mode: str = "rotation", bootstrap_s: float = 1.5, start: Path | None = None,
-             loop_params: LoopParams | None = None) -> dict[str, Any]:
+             loop_params: LoopParams | None = None, method: str | None = None) -> dict[str, Any]:
     """Run the ego-motion tracker over a recording's first camera (undistorted where calibrated so) and write
     its poses (T_world_cam) as a TUM file: `rotation` (the world frame being the camera's at the first
     event), or `6dof` (the tracking-mapping loop, its first map from the first `bootstrap_s` of known poses:
-    `start`'s, else the file's truth; the world frame is theirs). Lost updates give no pose, and are
-    counted."""
+    `start`'s, else the file's truth; the world frame is theirs), mapped by `method`: the space sweep of the
+    first camera, or stereo of the first two (the default for a file of two cameras). Lost updates give no
+    pose, and are counted."""
     if mode not in ODOMETRY_MODES:
         raise ValueError(f"odometry mode {mode!r} is not one of {', '.join(ODOMETRY_MODES)}")
     rows = []
-    with open_recording(src) as rec:
-        undistort = Undistort.of(rec)
-        six = mode == "6dof"
-        if six:
-            tracker: RotationTracker | MappedOdometry = MappedOdometry(
-                rec.K_or_default(), rec.width, rec.height, _known_start(rec, src, bootstrap_s, start), loop_params)
+    with open_recording(src) as rec, contextlib.ExitStack() as others:
+        rig = [rec, *(others.enter_context(r) for r in rec.rig()[1:])] if mode == "6dof" else [rec]
+        method = method or ("stereo" if len(rig) > 1 else "sweep")
+        if method not in MAP_METHODS:
+            raise ValueError(f"mapping method {method!r} is not one of {', '.join(MAP_METHODS)}")
+        if method == "stereo" and len(rig) < 2:
+            raise FormatError(src, "6-DoF odometry by stereo needs a file of two cameras (etam sim stereo writes one)")
+        cameras = rig[:2] if method == "stereo" else rig[:1]
+        if mode == "6dof":
+            tracker: RotationTracker | MappedOdometry = _loop(rec, src, cameras, bootstrap_s, start, loop_params)
         else:
             tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         n_events = still = lost = 0
         with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
-            for chunk in rec.chunks():
-                n_events += len(chunk)
-                bar.update(len(chunk))
-                for est in tracker.add(undistort(chunk) if undistort is not None else chunk):
+            for chunks in _camera_chunks(cameras):
+                n_events += sum(len(c) for c in chunks)
+                bar.update(sum(len(c) for c in chunks))
+                for est in tracker.add(*chunks):
                     lost += est.state == LOST
                     if est.state != LOST:
                         rows.append(est.tum_row())
@@ -90,12 +99,40 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
     write_tum(str(out), np.asarray(rows).reshape(-1, 8))
     summary = {"input": str(src), "output": str(out), "mode": mode, "events": n_events, "poses": len(rows),
                "still": still, "lost": lost}
-    if six:
-        summary |= {"rate_hz": 1e6 / tracker.params.tracker.step_us, "bootstrap_s": bootstrap_s,
+    if isinstance(tracker, MappedOdometry):
+        summary |= {"rate_hz": 1e6 / tracker.params.tracker.step_us, "bootstrap_s": bootstrap_s, "method": method,
                     "keyframes": len(tracker.keyframes), "map_points": sum(len(k.points) for k in tracker.keyframes)}
     else:
         summary["rate_hz"] = 1e6 / tracker.params.step_us
     return summary
+
+
+def _camera_chunks(cameras: list[Recording]) -> Iterator[tuple[np.ndarray, ...]]:
+    """The cameras' events (undistorted where calibrated so) in chunks: the first camera's, with the second's
+    up to the same time."""
+    streams = []
+    for rec in cameras:
+        undistort = Undistort.of(rec)
+        streams.append(undistort(c) if undistort is not None else c for c in rec.chunks())
+    if len(streams) == 1:
+        return ((chunk,) for chunk in streams[0])
+    return ev_ops.paired(*streams)
+
+
+def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: float, start: Path | None,
+          params: LoopParams | None) -> MappedOdometry:
+    """The 6-DoF tracking-mapping loop of the first camera, mapped by stereo when given two."""
+    known = _known_start(rec, src, bootstrap_s, start)
+    K, width, height = rec.K_or_default(), rec.width, rec.height
+    if len(cameras) == 1:
+        return MappedOdometry(K, width, height, known, params)
+    params = params or LoopParams(keyframes=tracking_map(stereo=True))
+    in_rig = [r.calibration.T_body_cam if r.calibration is not None else None for r in cameras]
+    try:
+        mapper = StereoMapper(K, cameras[1].K_or_default(), relative_pose(*in_rig), width, height, params.keyframes)
+    except ValueError as exc:  # no pose in the rig, or a rig that cannot be rectified
+        raise FormatError(src, str(exc)) from None
+    return MappedOdometry(K, width, height, known, params, mapper)
 
 
 def _known_start(rec: Recording, src: Path, bootstrap_s: float, start: Path | None) -> Trajectory:
