@@ -83,7 +83,8 @@ def test_keyframes_end_also_by_time_where_a_span_is_set() -> None:
     rng = np.random.default_rng(3)
     points = np.column_stack([rng.uniform(-1, 2, 500), rng.uniform(-1, 1, 500), np.full(500, 3.0)])
     t = np.linspace(0, 1.0, 51)
-    turning = Trajectory(np.column_stack([t, 0 * t, 0 * t, 0 * t, Rotation.from_euler("y", (0.1 * t)[:, None]).as_quat()]))
+    q = Rotation.from_euler("y", (0.1 * t)[:, None]).as_quat()
+    turning = Trajectory(np.column_stack([t, 0 * t, 0 * t, 0 * t, q]))
     events = _events_of(points, turning, np.arange(0, 1_000_000, 5_000))
     spans = {}
     for span_us in (0, 300_000):
