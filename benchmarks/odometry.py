@@ -19,7 +19,8 @@ stream in 1 ms packets, the map given (the mapper's sweep, a separate service li
 The same seeds live: `etam up --source FILE.h5 --ego 6dof` (camera, tracker and mapper processes, the file
 in real time); the tracker's own poses scored the same way, with when they began (the known start lasts
 until the mapper's first keyframe comes), how many updates were lost from then to the end, and the RMS
-error of their angular velocity.
+error of their angular velocity. Then all of it again on the same seeds' `sim:stereo` rigs (the same scenes
+and motion, a second camera 10 cm to the right), mapped by stereo offline and live (ESVO's loop).
 No peer library on PyPI estimates camera motion from events, so no ratio is given.
 """
 
@@ -83,14 +84,15 @@ def run(quick: bool = False) -> list[dict]:
         rows.extend(speed(Path(tmp) / "speed.h5", 1.0 if quick else 4.0))
 
         def score_6dof(h5: Path, seed: int) -> dict:
-            tum = Path(tmp) / f"6dof{seed}.tum"
+            tum = Path(tmp) / f"{h5.stem}.tum"
             done = odometry(h5, tum, progress=False, mode="6dof")
             aligned = {f"{a}_ate_percent": eval_odometry(tum, h5, a)["ate_percent_of_distance"]
                        for a in ("se3", "sim3")}
             return {**eval_odometry(tum, h5, "origin"), "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
-                    **live_loop(h5, Path(tmp) / f"6dof{seed}-live.tum")}
+                    **live_loop(h5, Path(tmp) / f"{h5.stem}-live.tum")}
 
-        rows += per_seed("odometry 6dof", "6dof", seeds, 4.0 if quick else 10.0, score_6dof, SIXDOF_FIGURES, Path(tmp))
+        for stage, scene in (("odometry 6dof", "6dof"), ("odometry 6dof stereo", "stereo")):
+            rows += per_seed(stage, scene, seeds, 4.0 if quick else 10.0, score_6dof, SIXDOF_FIGURES, Path(tmp))
         rows.append(speed_6dof(Path(tmp) / "6dof11.h5"))
     return rows
 

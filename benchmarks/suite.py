@@ -164,13 +164,19 @@ def format_results(results: dict) -> str:
                          f"{row['ms_per_update']:.2f} ms each, {row['realtime_factor']:.1f}x real time on a "
                          f"{row['stream_events_per_s'] / 1e6:.2f} Mev/s stream, one core, "
                          f"{row['map_points']} map points")
-        elif row["stage"] == "odometry 6dof":
+        elif row["stage"] in ("odometry 6dof", "odometry 6dof stereo"):
             lines.append(f"{row['stage']} seed {row['seed']!s:>9}: ATE {row['ate_m'] * 100:.1f} cm = "
                          f"{row['ate_percent_of_distance']:.2f} % of {row['distance_m']:.2f} m (SE(3)-aligned "
                          f"{row['se3_ate_percent']:.2f} %, Sim(3) {row['sim3_ate_percent']:.2f} %), orientation RMS "
                          f"{row['ate_rot_deg']:.2f} deg, RPE {row['rpe_deg_per_s']:.2f} deg/s "
-                         f"{row['rpe_cm_per_s']:.1f} cm/s, {row['lost']:.0f} updates lost, "
-                         f"{row['keyframes']:.0f} keyframes")
+                         f"{row['rpe_cm_per_s']:.1f} cm/s, {row['lost']:.0f} updates lost"
+                         + (f", {row['keyframes']:.0f} keyframes" if "keyframes" in row else ""))
+            if "live_ate_m" in row:
+                lines.append(f"{'':>{len(row['stage']) + 16}}live: own poses from {row['live_started_s']:.2f} s, "
+                             f"{row['live_poses']:.0f} of them, {row['live_lost']:.0f} updates lost, ATE "
+                             f"{row['live_ate_m'] * 100:.1f} cm = {row['live_ate_percent']:.2f} % (SE(3) "
+                             f"{row['live_se3_ate_percent']:.2f} %), angular velocity RMS "
+                             f"{row['live_omega_rms_deg_s']:.1f} deg/s, {row['live_map_parts']:.0f} map parts")
         else:
             lines.append(f"{row['stage']} seed {row['seed']!s:>9}: angular velocity RMS {row['omega_rms_deg_s']:.1f} "
                          f"deg/s = {row['omega_rms_of_peak']:.2%} of the {row['omega_peak_deg_s']:.0f} deg/s peak, "
