@@ -12,6 +12,7 @@ import urllib.request
 
 import cv2
 import numpy as np
+import pytest
 import zenoh
 
 from services.messages import (
@@ -393,19 +394,21 @@ def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: s
     assert paired and np.median([np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in paired]) < 0.1
 
 
-def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
-    """camera (a `sim 6dof` recording) -> tracker --ego 6dof <-> mapper --poses ego --tracking-map: the tracker
-    passes the camera's truth poses on until the mapper's first keyframe comes on mapper/map/keyframe, then
-    publishes poses of its own on the same stream (later than any it passed on, every 20 ms, with angular
-    velocity), going on from the truth within 10 cm over their first 0.1 s (a wrong time or frame at the
-    hand-over is tens of cm to metres off; 2-6 cm is what it does). How far they drift after is measured by
-    `etam bench --only odometry`, not asserted: live, the loop still loses its map within seconds."""
+@pytest.mark.parametrize(("scene", "seconds", "mapping"), [("6dof", "8", ()), ("stereo", "5", ("--method", "stereo"))])
+def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path, scene: str, seconds: str,  # noqa: ANN001
+                                                mapping: tuple[str, ...]) -> None:
+    """camera (a `sim 6dof` recording, or a `sim stereo` rig's, mapped by stereo) -> tracker --ego 6dof <-> mapper
+    --poses ego --tracking-map: the tracker passes the camera's truth poses on until the mapper's first keyframe
+    comes on mapper/map/keyframe, then publishes poses of its own on the same stream (later than any it passed
+    on, every 20 ms, with angular velocity), going on from the truth within 10 cm over their first 0.1 s (a wrong
+    time or frame at the hand-over is tens of cm to metres off; 2-6 cm is what it does). How far they drift
+    after is measured by `etam bench --only odometry`, not asserted: live, the loop still loses its map."""
     from services.camera.formats import open_recording
     from services.mapper.trajectory import Trajectory
     from services.messages import Pose
 
-    h5 = tmp_path / "6dof.h5"
-    subprocess.run(etam_argv("sim", "6dof", "--out", str(h5), "--duration", "8", "--seed", "1", "--json"),
+    h5 = tmp_path / f"{scene}.h5"
+    subprocess.run(etam_argv("sim", scene, "--out", str(h5), "--duration", seconds, "--seed", "1", "--json"),
                    check=True, capture_output=True, timeout=300)
     with open_recording(h5) as rec:
         truth = rec.truth.poses
@@ -413,7 +416,7 @@ def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path)
     with client_session(router) as s:
         ego, keyframes = Collector(s, f"etam/{rig}/tracker/ego/pose"), Collector(s, f"etam/{rig}/mapper/*/keyframe")
         with spawn("tracker", "--ego", "6dof", *common), \
-                spawn("mapper", "--poses", "ego", "--tracking-map", *common):
+                spawn("mapper", "--poses", "ego", "--tracking-map", *mapping, *common):
             wait_alive(s, rig, 2)
             with spawn("camera", "--source", str(h5), *common):
                 def own() -> list | None:
