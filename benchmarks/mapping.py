@@ -136,10 +136,10 @@ def per_seed(stage: str, scene: str, seeds: tuple[int, ...], duration_s: float,
         simulate(scene, h5, duration_s, seed=seed, progress=False, scene_args=(scene_args or {}).get(seed))
         scores = score(h5, seed)
         rows.append({"stage": stage, "scene": scene, "seed": seed, "duration_s": duration_s,
-                     **{k: scores[k] for k in ("keyframes", *figures) if k in scores}})
-    if len(rows) > 1:
+                     **{k: v for k, v in scores.items() if k in ("keyframes", *figures) or k.endswith("error")}})
+    if len(rows) > 1:  # of the seeds that gave each figure (a live run may have failed, saying why in its row)
         rows.append({"stage": stage, "scene": scene, "seed": f"mean of {len(rows)}", "duration_s": duration_s,
-                     **{k: float(np.mean([r[k] for r in rows])) for k in figures}})
+                     **{k: float(np.mean(got)) for k in figures if (got := [r[k] for r in rows if k in r])}})
     return rows
 
 

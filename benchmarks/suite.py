@@ -177,6 +177,8 @@ def format_results(results: dict) -> str:
                              f"{row['live_ate_m'] * 100:.1f} cm = {row['live_ate_percent']:.2f} % (SE(3) "
                              f"{row['live_se3_ate_percent']:.2f} %), angular velocity RMS "
                              f"{row['live_omega_rms_deg_s']:.1f} deg/s, {row['live_map_parts']:.0f} map parts")
+            elif "live_error" in row:
+                lines.append(f"{'':>{len(row['stage']) + 16}}live: {row['live_error']}")
         else:
             lines.append(f"{row['stage']} seed {row['seed']!s:>9}: angular velocity RMS {row['omega_rms_deg_s']:.1f} "
                          f"deg/s = {row['omega_rms_of_peak']:.2%} of the {row['omega_peak_deg_s']:.0f} deg/s peak, "

@@ -171,24 +171,30 @@ def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone
     assert np.allclose(estimates[-1].omega, omega, atol=np.radians(1.0))
 
 
+def _odom(tmp_path, scene: str, seconds: str, *flags: str) -> tuple[dict, np.ndarray, float]:  # noqa: ANN001
+    """`etam sim SCENE` -> `etam odom --mode 6dof` -> `etam eval odometry --align origin`, as a user runs them:
+    the summary, the poses written, and their ATE (m, nothing fitted)."""
+    h5, tum = tmp_path / f"{scene}.h5", tmp_path / "traj.tum"
+    subprocess.run(etam_argv("sim", scene, "--out", str(h5), "--duration", seconds, "--seed", "1" if scene == "6dof"
+                             else "2", "--json"), check=True, capture_output=True, timeout=300)
+    made = subprocess.run(etam_argv("odom", str(h5), "--mode", "6dof", *flags, "--out", str(tum), "--json"),
+                          capture_output=True, text=True, timeout=300)
+    assert made.returncode == 0, made.stderr
+    scored = subprocess.run(etam_argv("eval", "odometry", "--pred", str(tum), "--truth", str(h5), "--align", "origin",
+                                      "--json"), capture_output=True, text=True, timeout=120)
+    assert scored.returncode == 0, scored.stderr
+    return json.loads(made.stdout), read_tum(str(tum)), json.loads(scored.stdout)["ate_m"]
+
+
 def test_odom_6dof_command_closes_the_loop_on_the_simulator(tmp_path):
     """`etam sim 6dof` -> `etam odom --mode 6dof` -> `etam eval odometry`, as a user runs them: poses from the
     end of the known start on, none lost, within 5 cm of the truth with nothing fitted; and a file without
     known poses is refused with what to give."""
-    h5, tum = tmp_path / "6dof.h5", tmp_path / "traj.tum"
-    subprocess.run(etam_argv("sim", "6dof", "--out", str(h5), "--duration", "3", "--seed", "1", "--json"),
-                   check=True, capture_output=True, timeout=300)
-    made = subprocess.run(etam_argv("odom", str(h5), "--mode", "6dof", "--bootstrap", "1.5", "--out", str(tum),
-                                    "--json"), capture_output=True, text=True, timeout=300)
-    assert made.returncode == 0, made.stderr
-    summary = json.loads(made.stdout)
-    rows = read_tum(str(tum))
+    summary, rows, ate_m = _odom(tmp_path, "6dof", "3", "--bootstrap", "1.5")
+    assert summary["method"] == "sweep"
     assert summary["poses"] == len(rows) >= 70 and summary["lost"] == 0 and summary["keyframes"] >= 1
     assert rows[0, 0] >= 1.5
-    scored = subprocess.run(etam_argv("eval", "odometry", "--pred", str(tum), "--truth", str(h5), "--align", "origin",
-                                      "--json"), capture_output=True, text=True, timeout=120)
-    assert scored.returncode == 0, scored.stderr
-    assert json.loads(scored.stdout)["ate_m"] < 0.05
+    assert ate_m < 0.05
 
     objects = tmp_path / "objects.h5"
     subprocess.run(etam_argv("sim", "objects", "--out", str(objects), "--duration", "0.3", "--json"), check=True,
@@ -196,7 +202,21 @@ def test_odom_6dof_command_closes_the_loop_on_the_simulator(tmp_path):
     refused = subprocess.run(etam_argv("odom", str(objects), "--mode", "6dof"), capture_output=True, text=True,
                              timeout=120)
     assert refused.returncode != 0 and "--start" in refused.stderr and "Traceback" not in refused.stderr
-    none = subprocess.run(etam_argv("odom", str(h5), "--mode", "6dof", "--bootstrap", "0"), capture_output=True,
-                          text=True, timeout=120)
+    none = subprocess.run(etam_argv("odom", str(tmp_path / "6dof.h5"), "--mode", "6dof", "--bootstrap", "0"),
+                          capture_output=True, text=True, timeout=120)
     assert none.returncode != 0 and "--bootstrap must be positive" in none.stderr and "Traceback" not in none.stderr
 
+
+def test_odom_6dof_on_a_stereo_rig_maps_by_stereo_and_holds(tmp_path):
+    """A `sim stereo` rig's file: `etam odom --mode 6dof` maps by stereo (the default for a rig), the tracker
+    following the stereo map it extends with its own poses, none lost, within 3 cm with nothing fitted; stereo
+    is refused by name on a file of one camera."""
+    summary, rows, ate_m = _odom(tmp_path, "stereo", "4")
+    assert summary["method"] == "stereo" and summary["lost"] == 0 and summary["keyframes"] >= 3
+    assert summary["poses"] == len(rows) >= 120 and ate_m < 0.03
+    mono = tmp_path / "mono.h5"
+    subprocess.run(etam_argv("sim", "6dof", "--out", str(mono), "--duration", "0.2", "--json"), check=True,
+                   capture_output=True, timeout=120)
+    bad = subprocess.run(etam_argv("odom", str(mono), "--mode", "6dof", "--method", "stereo"), capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "two cameras" in bad.stderr and "Traceback" not in bad.stderr
