@@ -110,13 +110,16 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
 def _camera_chunks(cameras: list[Recording]) -> Iterator[tuple[np.ndarray, ...]]:
     """The cameras' events (undistorted where calibrated so) in chunks: the first camera's, with the second's
     up to the same time."""
-    streams = []
-    for rec in cameras:
-        undistort = Undistort.of(rec)
-        streams.append(undistort(c) if undistort is not None else c for c in rec.chunks())
+    streams = [_undistorted(rec) for rec in cameras]
     if len(streams) == 1:
         return ((chunk,) for chunk in streams[0])
     return ev_ops.paired(*streams)
+
+
+def _undistorted(rec: Recording) -> Iterator[np.ndarray]:
+    undistort = Undistort.of(rec)
+    for chunk in rec.chunks():
+        yield undistort(chunk) if undistort is not None else chunk
 
 
 def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: float, start: Path | None,

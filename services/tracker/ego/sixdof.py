@@ -9,8 +9,8 @@ distances, Huber-weighted (points with no edge near them, occluded or unseen by 
 prior on the step from the prediction, is least: first on a half-resolution field, whose basin is twice as
 wide, then at full resolution. Whether the alignment holds is told by the share of points within
 `inlier_px` of an edge beyond what chance gives, and by the step it took: a lost update reports no pose,
-and the next ones start from where the last good poses' velocity takes the camera (for up to `coast_us`:
-it goes on moving while lost), until one holds again (at a higher share than tracking needs to go on).
+and the next ones start from the last good pose, without its velocity, until one holds again (at a
+higher share than tracking needs to go on).
 """
 
 from __future__ import annotations
@@ -56,9 +56,6 @@ class SixDofParams:
     # (off: 5.3 % ATE; 2 mm, 0.001 rad: 5.8 %)
     prior_m: float = 0.005
     prior_rad: float = 0.002
-    # lost, the camera goes on moving: the search for it starts where its last velocity takes it, for up to this
-    # long after the last good pose (then from there)
-    coast_us: int = 500_000
 
 
 @dataclass
@@ -228,12 +225,12 @@ class SixDofTracker:
 
     def _predict(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
         """T_cam_world at `t_us` by constant velocity between the oldest and the latest of the good poses kept
-        (the latest alone if it is the only one), at most `coast_us` on from the latest."""
+        (the latest alone if it is the only one, or while lost)."""
         t1, R1, c1 = self._poses[-1]
-        if len(self._poses) < 2:
+        if len(self._poses) < 2 or self.state == LOST:
             return R1, c1
         t0, R0, c0 = self._poses[0]
-        f = (min(t_us, t1 + self.params.coast_us) - t1) / max(t1 - t0, 1)
+        f = (t_us - t1) / max(t1 - t0, 1)
         dR = R1 @ R0.T  # T1 T0^-1, applied again for the time since t1
         rvec, _ = cv2.Rodrigues(dR)
         Rs, _ = cv2.Rodrigues(rvec * f)
