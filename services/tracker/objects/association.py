@@ -670,10 +670,14 @@ class MultiObjectTracker:
         among others, not measured, may be stale); no trail where the box's trailing side is at a border
         (a target coming in: its trail is outside)."""
         trail_us = self.params.trail_us
-        older = [c for c in tr.path if c[0] < tr.t_us]
-        if not older:
+        then = None  # the latest centre at least `trail_us` before its box's time, else the oldest before it
+        for c in reversed(tr.path):
+            if c[0] < tr.t_us:
+                then = c
+                if tr.t_us - c[0] >= trail_us:
+                    break
+        if then is None:
             return tr.box
-        then = next((c for c in reversed(older) if tr.t_us - c[0] >= trail_us), older[0])
         cx, cy = _centre(tr.box)
         # its move at that speed over the trail's time; a young track's shorter path is not stretched to it (a
         # box's edges jitter by a pixel or two between updates, and stretched that would be the trail)
@@ -689,14 +693,13 @@ class MultiObjectTracker:
         return box[0], box[1], box[2], box[3]
 
     def reported_state(self, tr: Track) -> int:
-        """The state a track is reported in: `TENTATIVE` while it comes in where a lost track may still give
-        it its id (at a border a lost one left by; anywhere, away from the borders), its own otherwise. An id
-        shown and then changed a few updates later is one more switch for whoever follows the target."""
+        """The state a track is reported in: `TENTATIVE` while it comes in (at a border, or beside another
+        target) and a lost track may still give it its id, its own otherwise. An id shown and then changed a
+        few updates later is one more switch for whoever follows the target; and a target may come back at
+        another border than it left by, or be found only once clear of the border (`_seen_before`)."""
         if tr.state != TRACKED or not tr.entering:
             return tr.state
-        sides = self._sides(tr.box)
-        waited = any(o.state == LOST and (not sides or self._sides(o.box) & sides) for o in self.tracks)
-        return TENTATIVE if waited else tr.state
+        return TENTATIVE if any(o.state == LOST for o in self.tracks) else tr.state
 
     def _stopped_in_view(self, tr: Track) -> bool:
         """Whether a track at a border is a target that stopped there, held with its whole size in view
