@@ -39,20 +39,11 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     cloud = VoxelMap(voxel_m)
     with open_recording(src) as rec, contextlib.ExitStack() as others:
         rig = [rec, *(others.enter_context(r) for r in rec.rig()[1:])]
-        method = method or ("stereo" if len(rig) > 1 else "sweep")
-        if method not in METHODS:
-            raise ValueError(f"mapping method {method!r} is not one of {', '.join(METHODS)}")
-        if method == "stereo" and len(rig) < 2:
-            raise FormatError(src, "stereo mapping needs a file of two cameras (etam sim stereo writes one)")
+        method = map_method(src, rig, method)
         K, trajectory = rec.K_or_default(), _trajectory(rec, src, poses)
         n_events = 0
         if method == "stereo":
-            try:
-                in_rig = [r.calibration.T_body_cam if r.calibration is not None else None for r in rig[:2]]
-                mapper = StereoMapper(K, rig[1].K_or_default(), relative_pose(*in_rig), rec.width, rec.height,
-                                      params, stereo)
-            except ValueError as exc:  # no pose in the rig, or a rig that cannot be rectified
-                raise FormatError(src, str(exc)) from None
+            mapper = stereo_mapper(src, rig, params, stereo)
             for left, right in ev_ops.paired(_posed_chunks(rig[0], trajectory, progress),
                                              _posed_chunks(rig[1], trajectory, False)):
                 n_events += len(left) + len(right)
@@ -70,6 +61,29 @@ def build_map(src: Path, out: Path, poses: Path | None = None, params: KeyframeP
     n_points = write_map(out, cloud, f"etam map of {src.name} ({method}): voxel {voxel_m} m")
     return {"input": str(src), "output": str(out), "method": method, "events": n_events,
             "keyframes": len(cloud.views), "points": n_points, "poses": str(poses) if poses else "truth"}
+
+
+def map_method(src: Path, rig: list[Recording], method: str | None) -> str:
+    """`method`, or the default for the file's cameras (stereo for two, else the space sweep); one the file
+    cannot be mapped by is refused by name."""
+    method = method or ("stereo" if len(rig) > 1 else "sweep")
+    if method not in METHODS:
+        raise ValueError(f"mapping method {method!r} is not one of {', '.join(METHODS)}")
+    if method == "stereo" and len(rig) < 2:
+        raise FormatError(src, "stereo mapping needs a file of two cameras (etam sim stereo writes one)")
+    return method
+
+
+def stereo_mapper(src: Path, rig: list[Recording], params: KeyframeParams | None = None,
+                  stereo: StereoParams | None = None) -> StereoMapper:
+    """The stereo mapper of the rig's first two cameras; a rig without their poses, or one that cannot be
+    rectified, is refused by name."""
+    in_rig = [r.calibration.T_body_cam if r.calibration is not None else None for r in rig[:2]]
+    try:
+        return StereoMapper(rig[0].K_or_default(), rig[1].K_or_default(), relative_pose(*in_rig), rig[0].width,
+                            rig[0].height, params, stereo)
+    except ValueError as exc:
+        raise FormatError(src, str(exc)) from None
 
 
 def build_mosaic(src: Path, out: Path, poses: Path | None = None, params: MosaicParams | None = None,

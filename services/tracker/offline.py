@@ -18,8 +18,7 @@ from services.camera.formats.kernels import first_at_or_after
 from services.mapper.trajectory import Trajectory, read_tum, write_tum
 from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
-from services.mapper.offline import METHODS as MAP_METHODS
-from services.mapper.stereo import StereoMapper, relative_pose
+from services.mapper.offline import map_method, stereo_mapper
 from services.tracker.ego.loop import LoopParams, MappedOdometry, tracking_map
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
@@ -76,11 +75,7 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
     rows = []
     with open_recording(src) as rec, contextlib.ExitStack() as others:
         rig = [rec, *(others.enter_context(r) for r in rec.rig()[1:])] if mode == "6dof" else [rec]
-        method = method or ("stereo" if len(rig) > 1 else "sweep")
-        if method not in MAP_METHODS:
-            raise ValueError(f"mapping method {method!r} is not one of {', '.join(MAP_METHODS)}")
-        if method == "stereo" and len(rig) < 2:
-            raise FormatError(src, "6-DoF odometry by stereo needs a file of two cameras (etam sim stereo writes one)")
+        method = map_method(src, rig, method)
         cameras = rig[:2] if method == "stereo" else rig[:1]
         if mode == "6dof":
             tracker: RotationTracker | MappedOdometry = _loop(rec, src, cameras, bootstrap_s, start, loop_params)
@@ -89,8 +84,9 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
         n_events = still = lost = 0
         with tqdm(unit="ev", unit_scale=True, desc=src.name, disable=not progress) as bar:
             for chunks in _camera_chunks(cameras):
-                n_events += sum(len(c) for c in chunks)
-                bar.update(sum(len(c) for c in chunks))
+                n = sum(len(c) for c in chunks)
+                n_events += n
+                bar.update(n)
                 for est in tracker.add(*chunks):
                     lost += est.state == LOST
                     if est.state != LOST:
@@ -130,12 +126,7 @@ def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: floa
     if len(cameras) == 1:
         return MappedOdometry(K, width, height, known, params)
     params = params or LoopParams(keyframes=tracking_map(stereo=True))
-    in_rig = [r.calibration.T_body_cam if r.calibration is not None else None for r in cameras]
-    try:
-        mapper = StereoMapper(K, cameras[1].K_or_default(), relative_pose(*in_rig), width, height, params.keyframes)
-    except ValueError as exc:  # no pose in the rig, or a rig that cannot be rectified
-        raise FormatError(src, str(exc)) from None
-    return MappedOdometry(K, width, height, known, params, mapper)
+    return MappedOdometry(K, width, height, known, params, stereo_mapper(src, cameras, params.keyframes))
 
 
 def _known_start(rec: Recording, src: Path, bootstrap_s: float, start: Path | None) -> Trajectory:
