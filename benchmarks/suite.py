@@ -168,9 +168,10 @@ def format_results(results: dict) -> str:
             lines.append(f"{row['stage']} seed {row['seed']!s:>9}: ATE {row['ate_m'] * 100:.1f} cm = "
                          f"{row['ate_percent_of_distance']:.2f} % of {row['distance_m']:.2f} m (SE(3)-aligned "
                          f"{row['se3_ate_percent']:.2f} %, Sim(3) {row['sim3_ate_percent']:.2f} %), orientation RMS "
-                         f"{row['ate_rot_deg']:.2f} deg, RPE {row['rpe_deg_per_s']:.2f} deg/s "
-                         f"{row['rpe_cm_per_s']:.1f} cm/s, {row['lost']:.0f} updates lost"
-                         + (f", {row['keyframes']:.0f} keyframes" if "keyframes" in row else ""))
+                         f"{row['ate_rot_deg']:.2f} deg, RPE "
+                         + (f"{row['rpe_deg_per_s']:.2f} deg/s {row['rpe_cm_per_s']:.1f} cm/s" if "rpe_deg_per_s" in row
+                            else "none (under a second of poses)")
+                         + f", {row['lost']:.0f} updates lost, {row['keyframes']:.0f} keyframes")
             if "live_ate_m" in row:
                 lines.append(f"{'':>{len(row['stage']) + 16}}live: own poses from {row['live_started_s']:.2f} s, "
                              f"{row['live_poses']:.0f} of them, {row['live_lost']:.0f} updates lost, ATE "
