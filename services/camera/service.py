@@ -107,8 +107,7 @@ class CameraService(Service):
         names = camera_names(self.name, len(self.sources))
         cams = [_Camera(self, name, src, chain, self.slice_us, self.max_events, fast)
                 for name, src, chain in zip(names, self.sources, self.filters, strict=True)]
-        for cam in cams:
-            cam.info_out.publish(cam.info())
+        self._report(cams)
         await asyncio.sleep(0)
         if fast:  # as fast as possible is only useful to someone listening from the start
             log.info("waiting for a subscriber to %s (or its imu, truth)", cams[0].events.key)
@@ -121,10 +120,7 @@ class CameraService(Service):
             done = all(cam.source.done for cam in cams)
             await asyncio.sleep(0 if fast and not done else self.tick_s)
             if time.monotonic() >= next_info:
-                for cam in cams:
-                    cam.info_out.publish(cam.info())
-                    if hasattr(cam.source, "health"):  # a live camera's link and losses
-                        self.status.update(cam.source.health())
+                self._report(cams)
                 next_info += 1.0
             if self.paused or done:
                 wall0, sensor0 = time.monotonic(), sensor_us  # resume from here, not in a rush
@@ -142,6 +138,14 @@ class CameraService(Service):
                 for cam in cams:
                     cam.play(sensor_us, sensor_us + self.slice_us)  # flush the last slice
                     cam.report_end()
+
+    def _report(self, cams: list[_Camera]) -> None:
+        """Publishes each camera's info and puts a live camera's link state and losses in the status,
+        from the start on: a ping never finds the status without them."""
+        for cam in cams:
+            cam.info_out.publish(cam.info())
+            if hasattr(cam.source, "health"):
+                self.status.update(cam.source.health())
 
     def _note_lag(self, behind_us: int) -> None:
         self.status["behind_s"] = round(behind_us / 1e6, 3)
