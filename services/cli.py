@@ -18,7 +18,7 @@ from services import config
 from services.camera.formats import FormatError
 from services.camera.sources import SourceError
 from services.tracker.ego import MODES as EGO_MODES
-from services.tracker.ego import ODOMETRY_MODES
+from services.tracker.ego import ODOMETRY_MODES, STEREO_WEAK_SHARE
 from services.tracker.objects.tracker import DEFAULT_METHOD, METHODS, method_params
 
 log = logging.getLogger("etam")
@@ -134,8 +134,12 @@ def _cmd_tracker(args: argparse.Namespace) -> int:
         sizes = ObjectSizes.parse(args.object_size or [])
     except ValueError as exc:
         raise config.ConfigError(str(exc)) from None
+    if not 0 <= args.map_refresh < 1:
+        raise config.ConfigError(f"--map-refresh must be in [0, 1), got {args.map_refresh}")
+    from services.tracker.ego.loop import RefreshParams
+
     return TrackerService(_service_options(args, "objects"), method_params(args.method), cam=args.cam,
-                          sizes=sizes, ego=args.ego).run()
+                          sizes=sizes, ego=args.ego, refresh=RefreshParams(weak_share=args.map_refresh)).run()
 
 
 def _cmd_mapper(args: argparse.Namespace) -> int:
@@ -216,6 +220,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
             opts.mapper_args += ("--method", "stereo")
     if ego != "off":
         opts.tracker_args += ("--ego", ego)
+    if ego == "6dof" and "stereo" in opts.mapper_args:  # the loop's keyframes when its map fails it (see loop_params)
+        opts.tracker_args += ("--map-refresh", str(STEREO_WEAK_SHARE))
     return up(opts)
 
 
@@ -562,6 +568,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "contrast maximisation, tracked against a panoramic map of the events); 6dof (the pose, by "
                         "aligning the mapper's map, built from these poses, to the events: run a mapper with --poses "
                         "ego --tracking-map; the camera's truth/pose starts it); or off (default)")
+    p.add_argument("--map-refresh", type=float, default=0.0, metavar="SHARE",
+                   help="with --ego 6dof: ask the mapper for a keyframe once the estimates explain under SHARE of "
+                        "their best inlier share since the last one, and when lost (0: never, the default; for a "
+                        f"stereo mapper, whose depth needs no travel, etam up gives {STEREO_WEAK_SHARE})")
     p.add_argument("--object-size", action="append", metavar="[ID=]M",
                    help="known width of targets in metres, for their 3D position (xyz = f * size / pixels): "
                         "M for every target, ID=M for one track id; repeatable")

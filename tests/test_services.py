@@ -204,6 +204,10 @@ def test_bad_flags_give_clear_errors(tmp_path) -> None:  # noqa: ANN001
     sim = subprocess.run(etam_argv("up", "--sim-param", "contrast=lots", "--duration", "1"), capture_output=True,
                          text=True, timeout=30)
     assert sim.returncode == 2 and "contrast='lots'" in sim.stderr and "Traceback" not in sim.stderr
+    share = subprocess.run(etam_argv("tracker", "--ego", "6dof", "--map-refresh", "1.5"), capture_output=True,
+                           text=True, timeout=30)
+    assert share.returncode == 2 and "--map-refresh must be in [0, 1)" in share.stderr
+    assert "Traceback" not in share.stderr
 
 
 def test_example_plugin_joins_the_rig_and_publishes_frames(router: str, rig: str) -> None:
@@ -394,10 +398,12 @@ def test_tracker_estimates_the_rotation_of_a_spinning_camera(router: str, rig: s
     assert paired and np.median([np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in paired]) < 0.1
 
 
-@pytest.mark.parametrize(("scene", "seconds", "mapping"), [("6dof", "8", ()), ("stereo", "5", ("--method", "stereo"))])
+@pytest.mark.parametrize(("scene", "seconds", "mapping", "tracking"),
+                         [("6dof", "8", (), ()), ("stereo", "5", ("--method", "stereo"), ("--map-refresh", "0.6"))])
 def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path, scene: str, seconds: str,  # noqa: ANN001
-                                                mapping: tuple[str, ...]) -> None:
-    """camera (a `sim 6dof` recording, or a `sim stereo` rig's, mapped by stereo) -> tracker --ego 6dof <-> mapper
+                                                mapping: tuple[str, ...], tracking: tuple[str, ...]) -> None:
+    """camera (a `sim 6dof` recording, or a `sim stereo` rig's, mapped by stereo, keyframes asked for as the map
+    fails the tracker, as `etam up` runs it) -> tracker --ego 6dof <-> mapper
     --poses ego --tracking-map: the tracker passes the camera's truth poses on until the mapper's first keyframe
     comes on mapper/map/keyframe, then publishes poses of its own on the same stream (later than any it passed
     on, every 20 ms, with angular velocity), going on from the truth within 10 cm over their first 0.1 s (a wrong
@@ -415,7 +421,7 @@ def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path,
     common = ("--connect", router, "--rig", rig, *ROOT_ARGS)
     with client_session(router) as s:
         ego, keyframes = Collector(s, f"etam/{rig}/tracker/ego/pose"), Collector(s, f"etam/{rig}/mapper/*/keyframe")
-        with spawn("tracker", "--ego", "6dof", *common), \
+        with spawn("tracker", "--ego", "6dof", *tracking, *common), \
                 spawn("mapper", "--poses", "ego", "--tracking-map", *mapping, *common):
             wait_alive(s, rig, 2)
             with spawn("camera", "--source", str(h5), *common):

@@ -10,7 +10,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from services.mapper.trajectory import read_tum
-from services.tracker.ego.sixdof import LOST, TRACKING, SixDofParams, SixDofTracker, align, distance_field
+from services.tracker.ego.loop import MapRefresh, MappedOdometry, RefreshParams, loop_params
+from services.tracker.ego.sixdof import (LOST, TRACKING, PoseEstimate, SixDofParams, SixDofTracker, align,
+                                         distance_field)
 from tests.conftest import etam_argv
 
 W, H = 346, 260
@@ -197,3 +199,77 @@ def test_odom_6dof_on_a_stereo_rig_maps_by_stereo_and_holds(tmp_path):
     bad = subprocess.run(etam_argv("odom", str(mono), "--mode", "6dof", "--method", "stereo"), capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "two cameras" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def _estimate(t_ms: int, share: float, state: int = TRACKING) -> PoseEstimate:
+    return PoseEstimate(t_ms * 1000, np.eye(3), np.zeros(3), state, share, 1000, np.zeros(3))
+
+
+def test_map_refresh_asks_for_a_keyframe_as_the_map_fails_and_when_lost() -> None:
+    """Off by default; on, once an estimate explains under `weak_share` of the best share since the last
+    keyframe (not sooner than `min_gap_us` after it), and on the first lost estimate after good ones."""
+    never = MapRefresh()
+    assert not any(never.due(_estimate(t, s)) for t, s in ((0, 0.3), (400, 0.01))) and not never.due(
+        _estimate(420, 0.0, LOST))
+    refresh = MapRefresh(RefreshParams(weak_share=0.6, min_gap_us=200_000))
+    refresh.keyframe_at(0)
+    assert [refresh.due(_estimate(t, s)) for t, s in ((20, 0.3), (40, 0.2), (60, 0.15))] == [False, False, False]
+    assert refresh.due(_estimate(200, 0.17))  # under 0.6 of 0.3, 200 ms after the keyframe
+    refresh.keyframe_at(200)
+    assert not refresh.due(_estimate(220, 0.17))  # the best is measured again from the keyframe on
+    assert [refresh.due(_estimate(t, 0.0, LOST)) for t in (240, 260)] == [True, False]
+
+
+def test_the_loop_keyframes_what_it_holds_when_its_map_fails_and_when_lost() -> None:
+    """`MappedOdometry` asks its mapper for a keyframe early (`early`) where `MapRefresh` says so, and on a lost
+    update, before the held segment is dropped; the keyframe's points join the tracker's map at once. The
+    tracker and mapper are stand-ins that replay estimates and count what they are asked."""
+    from services.mapper.keyframes import Keyframe
+    from services.mapper.trajectory import Trajectory
+
+    class Mapper:
+        def __init__(self) -> None:
+            self.asked: list[int] = []
+            self.held = 0
+
+        def add(self, events: np.ndarray, trajectory: Trajectory) -> list:
+            self.held += len(events)
+            return []
+
+        def early(self, trajectory: Trajectory) -> Keyframe | None:
+            self.asked.append(trajectory.end_us)
+            if not self.held:
+                return None
+            self.held = 0
+            return Keyframe(trajectory.end_us, np.eye(3), np.zeros(3), np.zeros((2, 2)), np.ones((7, 3)), np.ones(7),
+                            0)
+
+        def drop(self) -> None:
+            self.held = 0
+
+    class Tracker:
+        params = SixDofParams()
+        next_us = 1_520_000
+
+        def __init__(self, replay: list[PoseEstimate]) -> None:
+            self.replay, self.points = replay, 0
+
+        def add(self, events: np.ndarray) -> list[PoseEstimate]:
+            due = [e for e in self.replay if e.t_us <= int(events["t"][-1])]
+            self.replay = self.replay[len(due):]
+            return due
+
+        def add_points(self, points: np.ndarray) -> None:
+            self.points += len(points)
+
+    known = Trajectory(np.array([[t, 0, 0, 0, 0, 0, 0, 1] for t in (1.0, 1.5)]))
+    loop = MappedOdometry(np.eye(3), 64, 48, known, loop_params(stereo=True), Mapper())
+    loop.started = True
+    shares = [0.3, 0.3, 0.3] + [0.3] * 7 + [0.1] + [0.3] * 3
+    loop.tracker = Tracker([_estimate(1520 + 20 * k, s) for k, s in enumerate(shares)] + [_estimate(1820, 0.0, LOST)])
+    events = np.zeros(400, EVENT_DTYPE)
+    events["t"] = np.linspace(1_500_000, 1_830_000, 400)
+    loop.add(events)
+    # weak at 1.72 s (0.1 under 0.6 of 0.3, 200 ms on), lost at 1.82 s: a keyframe each, of what was held up to
+    # then (the last good pose, 1.78 s)
+    assert loop.mapper.asked == [1_720_000, 1_780_000] and loop.tracker.points == 14 and len(loop.keyframes) == 2

@@ -114,9 +114,15 @@ class KeyframeMapper:
     def flush(self, trajectory: Trajectory, min_share: float = 0.5) -> Keyframe | None:
         """At the end of the events: the last segment's keyframe if the camera travelled at least `min_share`
         of a segment's baseline in it (a shorter one would place its points poorly), else None."""
+        if (keyframe := self.early(trajectory, min_share)) is None:
+            self.drop()
+        return keyframe
+
+    def early(self, trajectory: Trajectory, min_share: float = 0.5) -> Keyframe | None:
+        """A keyframe asked for before the segment's end (the tracker needs a fresh map): of the events held, if
+        the camera travelled at least `min_share` of a segment's baseline (else None, and the segment goes on)."""
         if self._n and self._travel >= min_share * self.params.baseline_share * self.scene_depth:
             return self.finish(trajectory)
-        self.drop()
         return None
 
     def finish(self, trajectory: Trajectory) -> Keyframe:

@@ -193,9 +193,11 @@ class MapperService(Service):
                 self._publish_keyframe(kf, out, depth_out, keyframe_out)
             if self._cut_us is not None and taken_us >= self._cut_us:
                 self._cut_us = None
-                if self.mapper.held:
-                    for kf in [await asyncio.to_thread(self.mapper.finish, trajectory)]:
-                        self._publish_keyframe(kf, out, depth_out, keyframe_out)
+                # the first keyframe comes of what is held; a later one only if it can place its points (a
+                # tracker asks for one as its map fails it)
+                cut = self.mapper.early if self.cloud.views else self.mapper.finish
+                if self.mapper.held and (kf := await asyncio.to_thread(cut, trajectory)) is not None:
+                    self._publish_keyframe(kf, out, depth_out, keyframe_out)
             self.status["mapped_until_us"] = taken_us  # every event up to here is in the map (or its segment)
 
     def _publish_keyframe(self, kf: Keyframe, out: Output, depth_out: Output, keyframe_out: Output) -> None:
@@ -295,7 +297,7 @@ class MapperService(Service):
         if cmd.op == "reset":
             self._clear()
             return Reply(ok=True)
-        if cmd.op == "keyframe":  # end the segment held once mapped up to `until_us` (default: now)
+        if cmd.op == "keyframe":  # end the segment held once mapped up to `until_us` (default: now), see `_work`
             until = (cmd.args or {}).get("until_us", self.status.get("received_until_us", 0))
             if not isinstance(until, int) or self.mode != "depth":
                 return Reply(ok=False, error="keyframe: a depth map's, with args {'until_us': int} or none")

@@ -242,6 +242,9 @@ class StereoMatcher:
         return out
 
 
+EARLY_ESTIMATES = 5_000  # a keyframe asked for early holds this many estimates at least (a second holds 40-70 000)
+
+
 class StereoMapper:
     """A stereo rig's events in (both cameras' up to the same time), keyframes out: the matcher's estimates
     cut into segments by the camera's travel, as the space sweep's events are (`KeyframeMapper`), and
@@ -266,6 +269,11 @@ class StereoMapper:
     def finish(self, trajectory: Trajectory) -> Keyframe:
         """The keyframe of the estimates held so far (the segment ends here)."""
         return self.keyframes.finish(trajectory)
+
+    def early(self, trajectory: Trajectory) -> Keyframe | None:
+        """A keyframe asked for before the segment's end: of the estimates held, if `EARLY_ESTIMATES` (stereo
+        depth needs no travel, but a keyframe of a few frames has few points)."""
+        return self.keyframes.finish(trajectory) if self.held >= EARLY_ESTIMATES else None
 
     @property
     def held(self) -> int:

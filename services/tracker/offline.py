@@ -19,7 +19,7 @@ from services.mapper.trajectory import Trajectory, read_tum, write_tum
 from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
 from services.mapper.offline import map_method, stereo_mapper
-from services.tracker.ego.loop import LoopParams, MappedOdometry, tracking_map
+from services.tracker.ego.loop import LoopParams, MappedOdometry, loop_params
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
 from services.tracker.objects.association import TRACKED
@@ -125,7 +125,7 @@ def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: floa
     K, width, height = rec.K_or_default(), rec.width, rec.height
     if len(cameras) == 1:
         return MappedOdometry(K, width, height, known, params)
-    params = params or LoopParams(keyframes=tracking_map(stereo=True))
+    params = params or loop_params(stereo=True)
     return MappedOdometry(K, width, height, known, params, stereo_mapper(src, cameras, params.keyframes))
 
 

@@ -32,6 +32,7 @@ from services.messages import (CameraInfo, Command, EventPacket, Image, MessageE
 from services.runtime import Output, Service, ServiceOptions
 from services.tracker.ego import MODES as EGO_MODES
 from services.tracker.ego.follow import MapFollower
+from services.tracker.ego.loop import MapRefresh, RefreshParams
 from services.tracker.ego.rotation import LOST, STATES, RotationParams, RotationTracker
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
@@ -83,14 +84,18 @@ class TrackerService(Service):
     kind = "tracker"
 
     def __init__(self, options: ServiceOptions, params: TrackerParams | None = None, cam: str = "*",
-                 sizes: ObjectSizes | None = None, ego: str = "off") -> None:
+                 sizes: ObjectSizes | None = None, ego: str = "off", refresh: RefreshParams | None = None) -> None:
+        """`refresh`: when the 6-DoF loop asks the mapper for a keyframe of its own (never, by default; see
+        `MapRefresh`)."""
         super().__init__(options)
         if ego not in EGO_MODES:
             raise ValueError(f"ego-motion {ego!r} is not one of {', '.join(EGO_MODES)}")
         self.ego = ego
         self.motion: RotationTracker | MapFollower | None = None
         self.followed = ""  # the camera whose motion it follows
-        self._asking: asyncio.Future | None = None  # the query for a first keyframe
+        self._asking: asyncio.Future | None = None  # the latest query for a keyframe
+        self.refresh = MapRefresh(refresh)
+        self._good_us = -1  # the latest good 6-DoF estimate's time
         self._early_known: collections.deque[Pose] = collections.deque(maxlen=EARLY_PACKETS)  # before intrinsics
         self.tracker_params = params or TrackerParams()
         self.cam = cam
@@ -151,6 +156,9 @@ class TrackerService(Service):
             early.clear()
             events = undistort(events) if undistort is not None else events
             for est in await asyncio.to_thread(self.motion.add, events):
+                if isinstance(self.motion, MapFollower) and self.refresh.due(est):
+                    until = est.t_us if est.state != LOST else self._good_us
+                    self._asking = asyncio.ensure_future(self._ask_keyframe(until, "a keyframe of the map it needs"))
                 if est.state == LOST and self.status.get("ego_state") != STATES[LOST]:
                     log.warning("ego-motion of %s lost: %s", cam, "its events are no sharper for any rotation"
                                 if self.ego == "rotation" else "the map does not line up with its events")
@@ -158,6 +166,7 @@ class TrackerService(Service):
                 if est.state == LOST:  # no pose: the events say nothing of the motion (see rotation.LOST)
                     self.status["ego_lost"] = self.status.get("ego_lost", 0) + 1
                     continue
+                self._good_us = est.t_us
                 row = est.tum_row()  # t, position, quaternion
                 out.publish(Pose(t=est.t_us, stamp=est.t_us, p=np.array(row[1:4]), q=np.array(row[4:]), child=cam,
                                  omega=est.omega))
@@ -183,14 +192,16 @@ class TrackerService(Service):
             out.publish(Pose(t=msg.t, stamp=msg.t, p=msg.p, q=msg.q, child=cam, omega=msg.omega))
             if isinstance(motion, MapFollower) and motion.wants_map and asked is not motion:
                 asked = motion  # once per follower: the mapper ends its segment at this pose
-                self._asking = asyncio.ensure_future(self._ask_keyframe(msg.t))  # held: a task nobody holds may go
+                # held: a task nobody holds may go
+                self._asking = asyncio.ensure_future(self._ask_keyframe(msg.t, "a first keyframe"))
 
-    async def _ask_keyframe(self, t_us: int) -> None:
-        """Asks the rig's mappers for a keyframe of the events up to `t_us` (the end of the known start)."""
+    async def _ask_keyframe(self, t_us: int, what: str) -> None:
+        """Asks the rig's mappers for a keyframe of the events up to `t_us` (the end of the known start, or the
+        latest pose where the map fails the tracker)."""
         replies = await self.query(keys.key(self.rig, "mapper", "*", "cmd"), Reply,
                                    request=Command(op="keyframe", args={"until_us": int(t_us)}))
         if not any(isinstance(r, Reply) and r.ok for _, r in replies):
-            log.warning("no mapper took the request for a first keyframe: the first comes a baseline later")
+            log.warning("no mapper took the request for %s: it comes at the mapper's own time", what)
 
     async def _map_parts(self) -> None:
         """Each keyframe's points from the mapper join the 6-DoF tracker's map."""
@@ -199,6 +210,7 @@ class TrackerService(Service):
             assert isinstance(msg, PointCloud)
             if isinstance(self.motion, MapFollower):
                 self.motion.add_map(msg.points, msg.t)
+                self.refresh.keyframe_at(self._good_us)
                 self.status["ego_map_parts"] = self.motion.map_parts
 
     async def _track(self) -> None:

@@ -24,6 +24,7 @@ from services import events as ev_ops
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.stereo import StereoMapper
 from services.mapper.trajectory import Trajectory
+from services.tracker.ego import STEREO_WEAK_SHARE
 from services.tracker.ego.sixdof import TRACKING, PoseEstimate, SixDofParams, SixDofTracker
 
 
@@ -42,9 +43,54 @@ def tracking_map(params: KeyframeParams | None = None, stereo: bool = False) -> 
 
 
 @dataclass
+class RefreshParams:
+    # a keyframe is asked for once an estimate explains under this share of the best inlier share since the last
+    # keyframe (0: never): the map's edges fire only where the camera moves across them, and a map made while it
+    # moved one way explains the events of another way poorly (held-out stereo rig 12 was lost so, 2 cm off, as it
+    # turned). For stereo, whose depth needs no travel (see `loop_params`); the space sweep's keyframes need a
+    # baseline, and asked for early they placed their points poorly (dev seeds 1-6: mean 7.1 % ATE, 10.1 at 0.6)
+    weak_share: float = 0.0
+    min_gap_us: int = 200_000  # ... no sooner than this after the last keyframe
+
+
+class MapRefresh:
+    """When the tracker needs a new keyframe before the mapper's own rule (travel, time) gives one: its estimates
+    explain the events ever less well (`RefreshParams.weak_share`), or it was just lost (what its last good
+    poses placed is a map to be found again on). Shared by the offline loop and the live tracker service, which
+    asks the mapper for it."""
+
+    def __init__(self, params: RefreshParams | None = None) -> None:
+        self.params = params or RefreshParams()
+        self._tracking = False
+        self.keyframe_at(-(1 << 62))
+
+    def keyframe_at(self, t_us: int) -> None:
+        """A keyframe (of the tracker's map) was made at `t_us`: the best share is measured again from here."""
+        self._since_us, self._best = t_us, 0.0
+
+    def due(self, est: PoseEstimate) -> bool:
+        """Whether to ask for a keyframe after this estimate (never where `weak_share` is 0)."""
+        was, self._tracking = self._tracking, est.state == TRACKING
+        if not self.params.weak_share:
+            return False
+        if est.state != TRACKING:
+            return was
+        self._best = max(self._best, est.inliers)
+        return est.inliers < self.params.weak_share * self._best and est.t_us - self._since_us >= self.params.min_gap_us
+
+
+@dataclass
 class LoopParams:
     tracker: SixDofParams = field(default_factory=SixDofParams)
     keyframes: KeyframeParams = field(default_factory=tracking_map)
+    refresh: RefreshParams = field(default_factory=RefreshParams)
+
+
+def loop_params(stereo: bool = False) -> LoopParams:
+    """The loop's defaults, mapped by the space sweep or by `stereo`."""
+    if not stereo:
+        return LoopParams()
+    return LoopParams(keyframes=tracking_map(stereo=True), refresh=RefreshParams(weak_share=STEREO_WEAK_SHARE))
 
 
 class MappedOdometry:
@@ -58,6 +104,7 @@ class MappedOdometry:
         self.tracker = SixDofTracker(K, width, height, self.params.tracker)
         self.mapper = mapper or KeyframeMapper(K, width, height, self.params.keyframes)
         self.known = known
+        self.refresh = MapRefresh(self.params.refresh)
         self.keyframes: list[Keyframe] = []
         self._rows: list[list[float]] = []  # TUM rows of the trajectory the mapper sweeps with
         self._boot: list[tuple[np.ndarray, ...]] = []
@@ -77,12 +124,27 @@ class MappedOdometry:
             self._start()
         elif not len(cameras[0]):
             return []
+        estimates = []
+        # an update at a time: a keyframe asked for after one is in the map of the next, as live
+        step = self.tracker.params.step_us
+        ends = np.arange(self.tracker.next_us, int(cameras[0]["t"][-1]) + 1, step)
+        cuts = [np.searchsorted(ev["t"], ends, side="left") for ev in cameras]
+        for piece in zip(*(np.split(ev, cut) for ev, cut in zip(cameras, cuts, strict=True)), strict=True):
+            estimates += self._step(piece)
+        return estimates
+
+    def _step(self, cameras: tuple[np.ndarray, ...]) -> list[PoseEstimate]:
+        """`add` of events that complete one update at most."""
         estimates = self.tracker.add(cameras[0])
         self._pending.append(cameras)
         for est in estimates:
             if est.state == TRACKING:
                 self._rows.append(est.tum_row())
-            else:
+            # lost, what the good poses placed makes a keyframe if it can (the sweep's needs travel), a map to be
+            # found again on
+            if self.refresh.due(est) or est.state != TRACKING:
+                self._early()
+            if est.state != TRACKING:
                 self._drop_until(est.t_us)
         if estimates:
             self._map_until(int(self._rows[-1][0] * 1e6))
@@ -111,8 +173,19 @@ class MappedOdometry:
         """The pending events up to `t_us` to the mapper, with the trajectory so far."""
         events = self._take_pending(t_us)
         if len(events[0]) and len(self._rows) >= 2:
-            for kf in self.mapper.add(*events, Trajectory(np.asarray(self._rows))):
+            for kf in self.mapper.add(*events, self._trajectory()):
                 self._keyframe(kf)
+
+    def _trajectory(self) -> Trajectory:
+        """The poses so far: the known start's, then the good estimates'."""
+        return Trajectory(np.asarray(self._rows))
+
+    def _early(self) -> None:
+        """A keyframe now, of what the mapper holds up to the latest good pose, if it can make one (see
+        `MapRefresh`): the tracker's map is failing it."""
+        self._map_until(int(self._rows[-1][0] * 1e6))
+        if kf := self.mapper.early(self._trajectory()):
+            self._keyframe(kf)
 
     def _drop_until(self, t_us: int) -> None:
         """A lost update: the events before it have no pose, and the segment the mapper held ends unswept."""
@@ -129,4 +202,5 @@ class MappedOdometry:
     def _keyframe(self, kf: Keyframe) -> None:
         self.keyframes.append(kf)
         self.tracker.add_points(kf.points)
+        self.refresh.keyframe_at(int(self._rows[-1][0] * 1e6) if self._rows else kf.t_us)
 
