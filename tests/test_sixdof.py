@@ -207,7 +207,8 @@ def _estimate(t_ms: int, share: float, state: int = TRACKING) -> PoseEstimate:
 
 def test_map_refresh_asks_for_a_keyframe_as_the_map_fails_and_when_lost() -> None:
     """Off by default; on, once an estimate explains under `weak_share` of the best share since the last
-    keyframe (not sooner than `min_gap_us` after it), and on the first lost estimate after good ones."""
+    keyframe (not sooner than `min_gap_us` after it or after the last ask), and on the first lost estimate after
+    good ones."""
     never = MapRefresh()
     assert not any(never.due(_estimate(t, s)) for t, s in ((0, 0.3), (400, 0.01))) and not never.due(
         _estimate(420, 0.0, LOST))
@@ -215,6 +216,8 @@ def test_map_refresh_asks_for_a_keyframe_as_the_map_fails_and_when_lost() -> Non
     refresh.keyframe_at(0)
     assert [refresh.due(_estimate(t, s)) for t, s in ((20, 0.3), (40, 0.2), (60, 0.15))] == [False, False, False]
     assert refresh.due(_estimate(200, 0.17))  # under 0.6 of 0.3, 200 ms after the keyframe
+    # no keyframe came: asked again 200 ms later, not at every update
+    assert [refresh.due(_estimate(t, 0.17)) for t in (220, 380, 400)] == [False, False, True]
     refresh.keyframe_at(200)
     assert not refresh.due(_estimate(220, 0.17))  # the best is measured again from the keyframe on
     assert [refresh.due(_estimate(t, 0.0, LOST)) for t in (240, 260)] == [True, False]

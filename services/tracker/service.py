@@ -201,7 +201,9 @@ class TrackerService(Service):
         replies = await self.query(keys.key(self.rig, "mapper", "*", "cmd"), Reply,
                                    request=Command(op="keyframe", args={"until_us": int(t_us)}))
         if not any(isinstance(r, Reply) and r.ok for _, r in replies):
-            log.warning("no mapper took the request for %s: it comes at the mapper's own time", what)
+            self.status["ego_keyframes_unanswered"] = self.status.get("ego_keyframes_unanswered", 0) + 1
+            (log.warning if self.status["ego_keyframes_unanswered"] == 1 else log.debug)(
+                "no mapper took the request for %s: it comes at the mapper's own time", what)
 
     async def _map_parts(self) -> None:
         """Each keyframe's points from the mapper join the 6-DoF tracker's map."""

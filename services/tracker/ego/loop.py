@@ -69,14 +69,18 @@ class MapRefresh:
         self._since_us, self._best = t_us, 0.0
 
     def due(self, est: PoseEstimate) -> bool:
-        """Whether to ask for a keyframe after this estimate (never where `weak_share` is 0)."""
+        """Whether to ask for a keyframe after this estimate (never where `weak_share` is 0); asked, not again
+        within `min_gap_us` unless a keyframe comes (a mapper that cannot make one yet is not asked at 50 Hz)."""
         was, self._tracking = self._tracking, est.state == TRACKING
         if not self.params.weak_share:
             return False
         if est.state != TRACKING:
             return was
         self._best = max(self._best, est.inliers)
-        return est.inliers < self.params.weak_share * self._best and est.t_us - self._since_us >= self.params.min_gap_us
+        if est.inliers >= self.params.weak_share * self._best or est.t_us - self._since_us < self.params.min_gap_us:
+            return False
+        self._since_us = est.t_us
+        return True
 
 
 @dataclass
