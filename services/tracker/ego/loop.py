@@ -142,13 +142,14 @@ class MappedOdometry:
         estimates = self.tracker.add(cameras[0])
         self._pending.append(cameras)
         for est in estimates:
-            if est.state == TRACKING:
+            lost = est.state != TRACKING
+            if not lost:
                 self._rows.append(est.tum_row())
             # lost, what the good poses placed makes a keyframe if it can (the sweep's needs travel), a map to be
             # found again on
-            if self.refresh.due(est) or est.state != TRACKING:
+            if self.refresh.due(est) or lost:
                 self._early()
-            if est.state != TRACKING:
+            if lost:
                 self._drop_until(est.t_us)
         if estimates:
             self._map_until(int(self._rows[-1][0] * 1e6))
@@ -207,4 +208,9 @@ class MappedOdometry:
         self.keyframes.append(kf)
         self.tracker.add_points(kf.points)
         self.refresh.keyframe_at(int(self._rows[-1][0] * 1e6) if self._rows else kf.t_us)
+        # the mapper's next segment starts after this keyframe's time: the poses before it are not needed again,
+        # and the trajectory built for each update stays a segment long, not the whole run's (40 ms a build at 10
+        # minutes of poses, against the update's 20)
+        first = next((i for i, row in enumerate(self._rows) if row[0] * 1e6 >= kf.t_us), len(self._rows))
+        del self._rows[:max(min(first - 1, len(self._rows) - 2), 0)]
 
