@@ -121,12 +121,10 @@ def _undistorted(rec: Recording) -> Iterator[np.ndarray]:
 def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: float, start: Path | None,
           params: LoopParams | None) -> MappedOdometry:
     """The 6-DoF tracking-mapping loop of the first camera, mapped by stereo when given two."""
-    known = _known_start(rec, src, bootstrap_s, start)
-    K, width, height = rec.K_or_default(), rec.width, rec.height
-    if len(cameras) == 1:
-        return MappedOdometry(K, width, height, known, params)
-    params = params or loop_params(stereo=True)
-    return MappedOdometry(K, width, height, known, params, stereo_mapper(src, cameras, params.keyframes))
+    stereo = len(cameras) > 1
+    params = params or loop_params(stereo)
+    return MappedOdometry(rec.K_or_default(), rec.width, rec.height, _known_start(rec, src, bootstrap_s, start),
+                          params, stereo_mapper(src, cameras, params.keyframes) if stereo else None)
 
 
 def _known_start(rec: Recording, src: Path, bootstrap_s: float, start: Path | None) -> Trajectory:
