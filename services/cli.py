@@ -30,7 +30,8 @@ USB_BIAS_HELP = ("a USB camera's sensitivity preset: very_low, low, default, hig
                  "low, default, high (DAVIS)")
 USB_ROI_HELP = "a USB camera's region of interest X0,Y0,X1,Y1 (inclusive), cropped on the device"
 SIM_PARAM_HELP = ("a simulator parameter (repeatable): contrast, contrast_sigma, refractory_us, noise_rate_hz, "
-                  "hot_pixel_fraction, hot_pixel_rate_hz, max_step_px, min_dt_us, max_dt_us")
+                  "hot_pixel_fraction, hot_pixel_rate_hz, max_step_px, min_dt_us, max_dt_us; the 6dof and stereo "
+                  "scenes' IMU: imu_rate_hz, gyro_noise (deg/s/sqrt(Hz)), gyro_bias (deg/s), accel_noise, accel_bias")
 
 
 def _zenoh_flags(p: argparse.ArgumentParser) -> None:
@@ -397,9 +398,11 @@ def _cmd_odom(args: argparse.Namespace) -> int:
 
     _require_files(args.input, *([args.start] if args.start else []))
     summary = odometry(Path(args.input), _output(args.out), progress=not args.json, mode=args.mode,
-                       bootstrap_s=args.bootstrap, start=Path(args.start) if args.start else None, method=args.method)
+                       bootstrap_s=args.bootstrap, start=Path(args.start) if args.start else None, method=args.method,
+                       imu=not args.no_imu)
     detail = (f"{summary['still']} still" if args.mode == "rotation" else
-              f"{summary['keyframes']} keyframes, first map from {summary['bootstrap_s']:g} s of known poses")
+              f"{summary['keyframes']} keyframes, first map from {summary['bootstrap_s']:g} s of known poses"
+              + (", rotation from the gyro" if summary["gyro"] else ""))
     print(json.dumps(summary) if args.json else f"wrote {summary['poses']} poses ({summary['mode']}, {detail}, "
           f"{summary['lost']} lost, {summary['events']} events) to {args.out}")
     return 0
@@ -659,6 +662,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="6dof: how the map is built: sweep, the space sweep of the first camera's events (EMVS); "
                         "stereo, time-surface matching between the first two cameras (ESVO) (default: stereo for "
                         "a file of two cameras, else sweep)")
+    p.add_argument("--no-imu", action="store_true",
+                   help="6dof: leave the file's gyro out (by default, where the file has IMU samples, the gyro "
+                        "predicts each update's rotation and its bias is learnt on the way)")
     p.add_argument("--out", default="traj.tum", help="TUM trajectory to write (default traj.tum)")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of a progress bar")
     p.set_defaults(func=_cmd_odom)

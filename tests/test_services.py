@@ -407,7 +407,8 @@ def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path,
     --poses ego --tracking-map: the tracker passes the camera's truth poses on until the mapper's first keyframe
     comes on mapper/map/keyframe, then publishes poses of its own on the same stream (later than any it passed
     on, every 20 ms, with angular velocity), going on from the truth within 10 cm over their first 0.1 s (a wrong
-    time or frame at the hand-over is tens of cm to metres off; 2-6 cm is what it does). How far they drift
+    time or frame at the hand-over is tens of cm to metres off; 2-6 cm is what it does); the recording's gyro
+    samples, played by the camera, reach the tracker. How far they drift
     after is measured by `etam bench --only odometry`, not asserted: live, the loop still loses its map."""
     from services.camera.formats import open_recording
     from services.mapper.trajectory import Trajectory
@@ -430,7 +431,9 @@ def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path,
                     return poses if len(poses) >= 5 else None
 
                 mine = wait_for(own, 60, "5 poses of the tracker's own")
+            pong = _query(s, f"etam/{rig}/tracker/objects/cmd", Command(op="ping"))
         poses = ego.of(Pose)
+    assert pong.ok and pong.result["ego_imu_samples"] > 1000  # the recording's gyro, played on camera/cam0/imu
     assert keyframes.of(PointCloud) and len(keyframes.of(PointCloud)[0].points) > 500
     passed_on = [p for p in poses if _is_truth(p, truth)]
     assert len(passed_on) >= 25 and max(p.t for p in passed_on) < mine[0].t

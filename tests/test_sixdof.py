@@ -167,10 +167,11 @@ def _odom(tmp_path, scene: str, seconds: str, *flags: str) -> tuple[dict, np.nda
 
 def test_odom_6dof_command_closes_the_loop_on_the_simulator(tmp_path):
     """`etam sim 6dof` -> `etam odom --mode 6dof` -> `etam eval odometry`, as a user runs them: poses from the
-    end of the known start on, none lost, within 5 cm of the truth with nothing fitted; and a file without
+    end of the known start on, none lost, within 5 cm of the truth with nothing fitted, the rotation told by the
+    file's gyro; and a file without
     known poses is refused with what to give."""
     summary, rows, ate_m = _odom(tmp_path, "6dof", "3", "--bootstrap", "1.5")
-    assert summary["method"] == "sweep"
+    assert summary["method"] == "sweep" and summary["gyro"]  # the simulated camera's IMU
     assert summary["poses"] == len(rows) >= 70 and summary["lost"] == 0 and summary["keyframes"] >= 1
     assert rows[0, 0] >= 1.5
     assert ate_m < 0.05

@@ -23,7 +23,7 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
     with its ground truth (a rig's further cameras in groups `/cam1`, ...)."""
     sources = open_sources(f"sim:{scene}", seed=seed, sim_params=params, scene_args=scene_args)
     end_us = int(duration_s * 1e6)
-    totals = {"events": 0, "truth_boxes": 0, "truth_poses": 0}
+    totals = {"events": 0, "truth_boxes": 0, "truth_poses": 0, "imu_samples": 0}
     first = sources[0]
     with H5Writer(out, first.width, first.height) as writer, \
             tqdm(total=len(sources) * end_us // 1000, unit="ms", desc=f"sim:{scene}", disable=not progress) as bar:
@@ -39,10 +39,13 @@ def simulate(scene: str, out: Path, duration_s: float, seed: int = 0, progress: 
 def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm) -> dict[str, int]:
     """One camera's events and ground truth into `writer`; its counts."""
     boxes, boxes_3d, ignore, poses, omega, depth_t, depth_maps = [], [], [], [], [], [], []
+    imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     writer.write_calibration(source.calibration)
     for since in range(0, end_us, STEP_US):
         until = min(since + STEP_US, end_us)
         writer.write(source.advance(until))
+        if (samples := source.imu(since, until)) is not None:
+            imu.append(samples)
         for t_us, ids, bxs, solid in source.truth(since, until):
             boxes.extend([t_us, i, *b] for i, b in zip(ids.tolist(), bxs.tolist(), strict=True))
             boxes_3d.extend(solid.tolist())
@@ -65,9 +68,12 @@ def _simulate_camera(source: SimSource, writer: H5Writer, end_us: int, bar: tqdm
     if depth_maps:
         writer.write_truth("depth/t", np.asarray(depth_t, np.int64))
         writer.write_truth("depth/maps", np.stack(depth_maps).astype(np.float32))
+    if imu:
+        writer.write_imu(*(np.concatenate(column) for column in zip(*imu, strict=True)))
     if hasattr(source.scene, "panorama"):
         writer.write_truth("panorama", source.scene.panorama)
-    return {"events": writer.count, "truth_boxes": len(boxes), "truth_poses": len(poses)}
+    return {"events": writer.count, "truth_boxes": len(boxes), "truth_poses": len(poses),
+            "imu_samples": sum(len(t) for t, _, _ in imu)}
 
 
 def describe(path: Path, progress: bool = True) -> dict[str, Any]:
@@ -100,7 +106,7 @@ def describe(path: Path, progress: bool = True) -> dict[str, Any]:
 def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
     """Copy a recording into ETAM HDF5 (.h5), AEDAT 4.0 (.aedat4) or ECD text (.txt or a folder).
 
-    Calibration and ground truth go along where the output format has a place for them; of a rig of
+    Calibration, ground truth and IMU samples go along where the output format has a place for them; of a rig of
     several cameras, the first is copied."""
     from services.camera.formats.aedat4 import Aedat4Writer
     from services.camera.formats.ecd import EcdWriter
@@ -112,6 +118,8 @@ def convert(src: Path, dst: Path, progress: bool = True) -> dict[str, Any]:
             if rec.calibration is not None:
                 writer.write_calibration(rec.calibration)
             writer.copy_truth(rec.truth)
+            if (imu := rec.imu()) is not None:
+                writer.write_imu(*imu)
         elif suffix == ".aedat4":
             writer = Aedat4Writer(dst, rec.width, rec.height, source=rec.path.name)
         elif suffix in (".txt", ""):

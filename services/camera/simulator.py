@@ -41,7 +41,7 @@ class Scene(Protocol):
 
 @dataclass
 class SimParams:
-    """Event-generation parameters (contrast thresholds in log intensity units)."""
+    """Event-generation parameters (contrast thresholds in log intensity units), and the IMU's."""
 
     contrast: float = 0.25
     contrast_sigma: float = 0.03  # per-pixel mismatch of the threshold
@@ -52,6 +52,12 @@ class SimParams:
     max_step_px: float = 1.0  # adaptive render rate: largest image motion between renders
     min_dt_us: int = 200
     max_dt_us: int = 5000
+    # the IMU of the moving-camera scenes (`sim_imu.py`), an MPU-6500 / BMI160 class part
+    imu_rate_hz: float = 1000.0
+    gyro_noise: float = 0.01  # white noise density, deg/s/sqrt(Hz)
+    gyro_bias: float = 0.5  # standard deviation of the constant bias on each axis, deg/s
+    accel_noise: float = 0.003  # m/s^2/sqrt(Hz) (300 ug/sqrt(Hz))
+    accel_bias: float = 0.05  # m/s^2
 
     @classmethod
     def parse(cls, items: list[str]) -> SimParams:

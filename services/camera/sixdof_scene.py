@@ -97,19 +97,20 @@ class SixDofScene:
         self._rays = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
         self._reach_px = self.focal_px + np.hypot(width, height) / 2
 
-    def _motion(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:
-        """Position (m) and yaw, pitch, roll (rad): sums of slow sines, all zero at t = 0."""
-        t = (t_us % self.period_us) / 1e6
+    def _motion(self, t_us: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position (m) and yaw, pitch, roll (rad): sums of slow sines, all zero at t = 0 (3, or N x 3 for N
+        times)."""
+        t = (np.asarray(t_us, np.float64) % self.period_us) / 1e6
         w = self._w
-        p = np.array([0.4 * np.sin(w * t), 0.15 * np.sin(2 * w * t), 0.5 * (1 - np.cos(w * t))])
-        a = np.array([0.25 * np.sin(w * t), 0.1 * np.sin(3 * w * t), 0.08 * np.sin(2 * w * t)])
+        p = np.stack([0.4 * np.sin(w * t), 0.15 * np.sin(2 * w * t), 0.5 * (1 - np.cos(w * t))], axis=-1)
+        a = np.stack([0.25 * np.sin(w * t), 0.1 * np.sin(3 * w * t), 0.08 * np.sin(2 * w * t)], axis=-1)
         return p, a
 
-    def rotation(self, t_us: float) -> Rotation:
+    def rotation(self, t_us: float | np.ndarray) -> Rotation:
         return Rotation.from_euler("YXZ", self._motion(t_us)[1])
 
-    def position(self, t_us: float) -> np.ndarray:
-        """This camera's centre in the world (m): the body's plus its rotated offset."""
+    def position(self, t_us: float | np.ndarray) -> np.ndarray:
+        """This camera's centre in the world (m): the body's plus its rotated offset (3, or N x 3)."""
         return self._motion(t_us)[0] + self.rotation(t_us).apply(self.T_body_cam[:3, 3])
 
     def pose(self, t_us: float) -> tuple[np.ndarray, np.ndarray]:

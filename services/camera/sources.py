@@ -19,6 +19,7 @@ from services import events
 from services.camera.formats import Calibration, FormatError, Recording, open_recording
 from services.camera.formats.kernels import first_at_or_after
 from services.camera.rotation_scene import RotationScene
+from services.camera.sim_imu import SimulatedImu
 from services.camera.simulator import EventSimulator, ObjectsScene, SimParams
 from services.camera.sixdof_scene import SixDofScene
 from services.messages import EVENT_DTYPE
@@ -72,8 +73,10 @@ class SimSource:
     start_us = 0
     error = None
 
-    def __init__(self, scene: ObjectsScene | RotationScene | SixDofScene, sim: EventSimulator, name: str) -> None:
-        self.scene, self.sim, self.name = scene, sim, name
+    def __init__(self, scene: ObjectsScene | RotationScene | SixDofScene, sim: EventSimulator, name: str,
+                 imu: SimulatedImu | None = None) -> None:
+        """`imu`: the rig's IMU, on this camera."""
+        self.scene, self.sim, self.name, self._imu = scene, sim, name, imu
         self.width, self.height = scene.width, scene.height
         f = scene.focal_px
         self.K = np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1]], np.float64)
@@ -83,7 +86,10 @@ class SimSource:
         return self.sim.advance(until_us)
 
     def imu(self, since_us: int, until_us: int) -> ImuSamples | None:
-        return None  # the simulated cameras have no IMU yet
+        if self._imu is None:
+            return None
+        samples = self._imu.samples(since_us, until_us)
+        return samples if len(samples[0]) else None
 
     def loaded_until_us(self) -> int | None:
         return None  # simulated events are made on demand: nothing is loaded ahead
@@ -271,13 +277,15 @@ def open_sources(spec: str, seed: int = 0, loop: bool = False, sim_params: SimPa
         scene = spec[4:]
         if scene == "stereo":
             rig = [SixDofScene(seed=seed, baseline_m=b, **(scene_args or {})) for b in (0.0, STEREO_BASELINE_M)]
-            return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed + i), spec) for i, sc in enumerate(rig)]
+            return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed + i), spec,
+                              SimulatedImu(sc, sim_params, seed) if i == 0 else None) for i, sc in enumerate(rig)]
         scenes = {"objects": ObjectsScene, "rotation": RotationScene, "6dof": SixDofScene}
         if scene not in scenes:
             raise SourceError(f"source {spec!r}: unknown simulator scene {scene!r} (available: "
                               f"{', '.join('sim:' + s for s in SIM_SCENES)})")
         sc = scenes[scene](seed=seed, **(scene_args or {}))
-        return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec)]
+        imu = SimulatedImu(sc, sim_params, seed) if isinstance(sc, SixDofScene) else None
+        return [SimSource(sc, EventSimulator(sc, sim_params, seed=seed), spec, imu)]
     if spec == "usb" or spec.startswith("usb:"):
         from services.camera.usb.driver import UsbError
         from services.camera.usb.source import UsbSource

@@ -18,6 +18,7 @@ from services.camera.formats.kernels import first_at_or_after
 from services.mapper.trajectory import Trajectory, read_tum, write_tum
 from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
+from services.tracker.ego.gyro import Gyro
 from services.mapper.offline import map_method, stereo_mapper
 from services.tracker.ego.loop import LoopParams, MappedOdometry, loop_params
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
@@ -63,13 +64,13 @@ def track(src: Path, out: Path, params: TrackerParams | None = None, progress: b
 
 def odometry(src: Path, out: Path, params: RotationParams | None = None, progress: bool = True,
              mode: str = "rotation", bootstrap_s: float = 1.5, start: Path | None = None,
-             loop_params: LoopParams | None = None, method: str | None = None) -> dict[str, Any]:
+             loop_params: LoopParams | None = None, method: str | None = None, imu: bool = True) -> dict[str, Any]:
     """Run the ego-motion tracker over a recording's first camera (undistorted where calibrated so) and write
     its poses (T_world_cam) as a TUM file: `rotation` (the world frame being the camera's at the first
     event), or `6dof` (the tracking-mapping loop, its first map from the first `bootstrap_s` of known poses:
     `start`'s, else the file's truth; the world frame is theirs), mapped by `method`: the space sweep of the
-    first camera, or stereo of the first two (the default for a file of two cameras). Lost updates give no
-    pose, and are counted."""
+    first camera, or stereo of the first two (the default for a file of two cameras), its rotation told by the
+    file's gyro if it has one and `imu`. Lost updates give no pose, and are counted."""
     if mode not in ODOMETRY_MODES:
         raise ValueError(f"odometry mode {mode!r} is not one of {', '.join(ODOMETRY_MODES)}")
     rows = []
@@ -78,7 +79,9 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
         method = map_method(src, rig, method)
         cameras = rig[:2] if method == "stereo" else rig[:1]
         if mode == "6dof":
-            tracker: RotationTracker | MappedOdometry = _loop(rec, src, cameras, bootstrap_s, start, loop_params)
+            gyro = _gyro(rec) if imu else None
+            tracker: RotationTracker | MappedOdometry = _loop(rec, src, cameras, bootstrap_s, start, loop_params,
+                                                              gyro)
         else:
             tracker = RotationTracker(rec.K_or_default(), rec.width, rec.height, params)
         n_events = still = lost = 0
@@ -97,6 +100,7 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
                "still": still, "lost": lost}
     if isinstance(tracker, MappedOdometry):
         summary |= {"rate_hz": 1e6 / tracker.params.tracker.step_us, "bootstrap_s": bootstrap_s, "method": method,
+                    "gyro": tracker.tracker.gyro is not None,
                     "keyframes": len(tracker.keyframes), "map_points": sum(len(k.points) for k in tracker.keyframes)}
     else:
         summary["rate_hz"] = 1e6 / tracker.params.step_us
@@ -119,12 +123,23 @@ def _undistorted(rec: Recording) -> Iterator[np.ndarray]:
 
 
 def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: float, start: Path | None,
-          params: LoopParams | None) -> MappedOdometry:
+          params: LoopParams | None, gyro: Gyro | None) -> MappedOdometry:
     """The 6-DoF tracking-mapping loop of the first camera, mapped by stereo when given two."""
     stereo = len(cameras) > 1
     params = params or loop_params(stereo)
     return MappedOdometry(rec.K_or_default(), rec.width, rec.height, _known_start(rec, src, bootstrap_s, start),
-                          params, stereo_mapper(src, cameras, params.keyframes) if stereo else None)
+                          params, stereo_mapper(src, cameras, params.keyframes) if stereo else None, gyro)
+
+
+def _gyro(rec: Recording) -> Gyro | None:
+    """The recording's gyro samples, if it has any."""
+    imu = rec.imu()
+    if imu is None or not len(imu[0]):
+        return None
+    order = np.argsort(imu[0], kind="stable")
+    gyro = Gyro()
+    gyro.add(imu[0][order], imu[1][order])
+    return gyro
 
 
 def _known_start(rec: Recording, src: Path, bootstrap_s: float, start: Path | None) -> Trajectory:

@@ -27,8 +27,8 @@ import numpy as np
 from services import events as ev_ops
 from services import keys
 from services.camera.filters import Undistort
-from services.messages import (CameraInfo, Command, EventPacket, Image, MessageError, PointCloud, Pose, Reply,
-                               Tracks, image_to_array)
+from services.messages import (CameraInfo, Command, EventPacket, Image, ImuPacket, MessageError, PointCloud, Pose,
+                               Reply, Tracks, image_to_array)
 from services.runtime import Output, Service, ServiceOptions
 from services.tracker.ego import MODES as EGO_MODES
 from services.tracker.ego.follow import MapFollower
@@ -112,7 +112,8 @@ class TrackerService(Service):
         ego = ()
         if self.ego != "off":
             poses = self.publisher(keys.key(self.rig, "tracker", "ego", "pose"))
-            ego = (self._ego(poses), *((self._known_poses(poses), self._map_parts()) if self.ego == "6dof" else ()))
+            ego = (self._ego(poses),
+                   *((self._known_poses(poses), self._map_parts(), self._gyro()) if self.ego == "6dof" else ()))
         await asyncio.gather(self._track(), self.follow_cameras(self.cam, self.cameras, self._missing_intrinsics),
                              self._depths(), *ego)
 
@@ -204,6 +205,16 @@ class TrackerService(Service):
             self.status["ego_keyframes_unanswered"] = self.status.get("ego_keyframes_unanswered", 0) + 1
             (log.warning if self.status["ego_keyframes_unanswered"] == 1 else log.debug)(
                 "no mapper took the request for %s: it comes at the mapper's own time", what)
+
+    async def _gyro(self) -> None:
+        """The followed camera's gyro samples (its ``imu`` key, where it has one) predict the 6-DoF tracker's
+        rotation; those before the follower starts are not needed (it looks back one update at most)."""
+        async for key, msg in self.subscribe(keys.key(self.rig, "camera", "*", "imu"), ImuPacket, policy="fifo",
+                                             maxsize=1024):
+            assert isinstance(msg, ImuPacket)
+            if isinstance(self.motion, MapFollower) and _camera(key) == self.followed:
+                self.motion.add_imu(msg.t, msg.gyro)
+                self.status["ego_imu_samples"] = self.status.get("ego_imu_samples", 0) + len(msg.t)
 
     async def _map_parts(self) -> None:
         """Each keyframe's points from the mapper join the 6-DoF tracker's map."""

@@ -1,6 +1,7 @@
 """ETAM HDF5 (DESIGN.md section 7), read and written, and DSEC-style HDF5, read.
 
-ETAM: `/events/{t,x,y,p}`, root attributes width/height, optional `/calibration` and `/truth`.
+ETAM: `/events/{t,x,y,p}`, root attributes width/height, optional `/calibration`, `/truth` and `/imu/{t,gyro,accel}`
+(int64 us, N x 3 rad/s, N x 3 m/s^2, in the camera's frame: an addition to DESIGN.md's layout).
 A rig of several cameras keeps the first at the root (so every reader sees a plain file) and each
 further one in a group of the same layout named after it (`/cam1/events/t`, `/cam1/calibration/K`,
 ...), with `calibration/T_body_cam` (4x4) placing each camera in the rig.
@@ -69,6 +70,16 @@ class H5Recording(Recording):
             self.truth.depth_t = np.asarray(f["truth/depth/t"][:], np.int64)
             self.truth.depth_maps = f["truth/depth/maps"]  # frames are read when played
         self._events = f["events"]
+        self._imu = f["imu"] if all(f"imu/{k}" in f for k in ("t", "gyro", "accel")) else None
+
+    def imu(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        if self._imu is None:
+            return None
+        t, gyro, accel = (np.asarray(self._imu[k][:]) for k in ("t", "gyro", "accel"))
+        if not (len(t) == len(gyro) == len(accel)) or gyro.shape[1:] != (3,) or accel.shape[1:] != (3,):
+            raise FormatError(self.path, f"imu/t, imu/gyro and imu/accel must be N, N x 3 and N x 3; got "
+                              f"{t.shape}, {gyro.shape} and {accel.shape}")
+        return t.astype(np.int64), gyro.astype(np.float64), accel.astype(np.float64)
 
     def rig(self) -> list[Recording]:
         return [self] + [H5Recording(self.path, name) for name in self.cameras[1:]]
@@ -124,6 +135,12 @@ class H5Writer(EventWriter):
         self._file["calibration/dist"].attrs["model"] = calib.dist_model
         if calib.T_body_cam is not None:
             self._file["calibration/T_body_cam"] = np.asarray(calib.T_body_cam, np.float64)
+
+    def write_imu(self, t_us: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """IMU samples: times (us), gyro (rad/s, N x 3) and accelerometer (m/s^2, N x 3), in this camera's frame."""
+        self._file["imu/t"] = np.asarray(t_us, np.int64)
+        self._file["imu/gyro"] = np.asarray(gyro, np.float64).reshape(-1, 3)
+        self._file["imu/accel"] = np.asarray(accel, np.float64).reshape(-1, 3)
 
     def write_truth(self, name: str, rows: np.ndarray) -> None:
         self._file[f"truth/{name}"] = rows

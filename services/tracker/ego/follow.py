@@ -8,7 +8,8 @@ its first keyframe with them, asked for after `BOOTSTRAP_US` of known motion), a
 Then the tracker starts at that keyframe's time, where its map fits the events best, at the known pose
 there (with the one `step_us` before it for its first velocity), catches up through the held events,
 and gives its estimates from the last known pose on; no known pose is used after. Each later part of
-the map joins the tracker's map.
+the map joins the tracker's map. The camera's gyro samples, where it sends any, predict the rotation
+(`gyro.py`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 
 from services import events as ev_ops
 from services.mapper.trajectory import Trajectory
+from services.tracker.ego.gyro import Gyro
 from services.tracker.ego.sixdof import PoseEstimate, SixDofParams, SixDofTracker
 
 BOOTSTRAP_US = 1_500_000  # known motion after which the first keyframe is asked for (`etam odom --bootstrap`'s)
@@ -34,7 +36,7 @@ class MapFollower:
     `known` and `add_map` may be called while `add` runs in another thread."""
 
     def __init__(self, K: np.ndarray, width: int, height: int, params: SixDofParams | None = None) -> None:
-        self.tracker = SixDofTracker(K, width, height, params)
+        self.tracker = SixDofTracker(K, width, height, params, gyro=Gyro())
         self._known: collections.deque[list[float]] = collections.deque(maxlen=KNOWN_KEPT)  # TUM rows
         self._lock = threading.Lock()  # the known poses, and whether it started
         self._started = False
@@ -62,6 +64,12 @@ class MapFollower:
                 return False
             self._known.append([t_us / 1e6, *np.asarray(p, float), *np.asarray(q, float)])
             return True
+
+    def add_imu(self, t_us: np.ndarray, gyro: np.ndarray) -> None:
+        """Gyro samples (rad/s, N x 3, in the camera's frame) of the camera followed; until they cover an update
+        (or where they stop), its rotation is predicted from the poses alone."""
+        assert self.tracker.gyro is not None
+        self.tracker.gyro.add(t_us, gyro)
 
     def add_map(self, points: np.ndarray, t_us: int) -> None:
         """World points (N x 3) of one more part of the map, seen from its keyframe at `t_us`."""

@@ -25,6 +25,7 @@ from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.stereo import StereoMapper
 from services.mapper.trajectory import Trajectory
 from services.tracker.ego import STEREO_WEAK_SHARE
+from services.tracker.ego.gyro import Gyro
 from services.tracker.ego.sixdof import TRACKING, PoseEstimate, SixDofParams, SixDofTracker
 
 
@@ -101,11 +102,12 @@ class MappedOdometry:
     """Events (undistorted, sorted) in, 6-DoF pose estimates out, with the map built on the way."""
 
     def __init__(self, K: np.ndarray, width: int, height: int, known: Trajectory,
-                 params: LoopParams | None = None, mapper: KeyframeMapper | StereoMapper | None = None) -> None:
+                 params: LoopParams | None = None, mapper: KeyframeMapper | StereoMapper | None = None,
+                 gyro: Gyro | None = None) -> None:
         """`mapper` builds the map: the space sweep of the tracked camera's events (by default), or a stereo
-        rig's mapper, then fed both cameras' events (`add`)."""
+        rig's mapper, then fed both cameras' events (`add`); `gyro`, the tracked camera's, if it has one."""
         self.params = params or LoopParams()
-        self.tracker = SixDofTracker(K, width, height, self.params.tracker)
+        self.tracker = SixDofTracker(K, width, height, self.params.tracker, gyro=gyro)
         self.mapper = mapper or KeyframeMapper(K, width, height, self.params.keyframes)
         self.known = known
         self.refresh = MapRefresh(self.params.refresh)
