@@ -14,8 +14,10 @@ given beside it), and ms per estimate.
 `etam odom --mode 6dof` (the tracking-mapping loop, its first map from the first 1.5 s of truth poses, none
 after) and scored by `etam eval odometry`: ATE with the first poses made equal (the loop's world frame is
 the known start's, so nothing is fitted), and after SE(3) and Sim(3) alignment, as % of the distance
-travelled; updates lost; RPE. Its speed: alignment updates per CPU second on one core over the same
-stream in 1 ms packets, the map given (the mapper's sweep, a separate service live, not counted).
+travelled; updates lost; RPE. The simulated camera has an IMU (a gyro 0.1-1 deg/s off, see
+`services/camera/sim_imu.py`), which predicts the rotation; the offline loop is also run without it
+(`--no-imu`). Its speed: alignment updates per CPU second on one core over the same stream in 1 ms packets,
+the map given (the mapper's sweep, a separate service live, not counted), the gyro's samples too.
 The same seeds live: `etam up --source FILE.h5 --ego 6dof` (camera, tracker and mapper processes, the file
 in real time); the tracker's own poses scored the same way, with when they began (the known start lasts
 until the mapper's first keyframe comes), how many updates were lost from then to the end, and the RMS
@@ -49,6 +51,7 @@ from services.config import ZenohSettings
 from services.mapper.keyframes import KeyframeMapper
 from services.mapper.trajectory import Trajectory
 from services.messages import Pose, decode
+from services.tracker.ego.gyro import Gyro
 from services.tracker.ego.loop import LoopParams
 from services.tracker.ego.rotation import RotationParams, RotationTracker
 from services.tracker.ego.sixdof import SixDofParams, SixDofTracker
@@ -59,7 +62,8 @@ PEAKS_DEG_S = {11: 600.0, 12: 800.0, 13: 1000.0}  # each seed's motion scaled to
 FIGURES = ("omega_rms_deg_s", "omega_peak_deg_s", "omega_rms_of_peak", "final_rot_err_deg", "ate_rot_deg",
            "rpe_deg_per_s", "integrated_final_rot_err_deg", "integrated_omega_rms_of_peak")
 SIXDOF_FIGURES = ("distance_m", "ate_m", "ate_percent_of_distance", "se3_ate_percent", "sim3_ate_percent",
-                  "ate_rot_deg", "rpe_deg_per_s", "rpe_cm_per_s", "lost", "keyframes", "live_started_s", "live_poses",
+                  "ate_rot_deg", "rpe_deg_per_s", "rpe_cm_per_s", "lost", "keyframes", "no_imu_ate_percent",
+                  "no_imu_lost", "live_started_s", "live_poses",
                   "live_lost", "live_ate_m", "live_ate_percent", "live_se3_ate_percent", "live_omega_rms_deg_s",
                   "live_map_parts")
 LIVE_SLACK_S = 12.0  # `etam up` on a recording runs this much longer than it (processes start, the camera waits)
@@ -88,8 +92,11 @@ def run(quick: bool = False) -> list[dict]:
             done = odometry(h5, tum, progress=False, mode="6dof")
             aligned = {f"{a}_ate_percent": eval_odometry(tum, h5, a)["ate_percent_of_distance"]
                        for a in ("se3", "sim3")}
-            return {**eval_odometry(tum, h5, "origin"), "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
-                    **live_loop(h5, Path(tmp) / f"{h5.stem}-live.tum")}
+            scores = eval_odometry(tum, h5, "origin")
+            blind = odometry(h5, tum, progress=False, mode="6dof", imu=False)
+            return {**scores, "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
+                    "no_imu_ate_percent": eval_odometry(tum, h5, "origin")["ate_percent_of_distance"],
+                    "no_imu_lost": blind["lost"], **live_loop(h5, Path(tmp) / f"{h5.stem}-live.tum")}
 
         for stage, scene in (("odometry 6dof", "6dof"), ("odometry 6dof stereo", "stereo")):
             rows += per_seed(stage, scene, seeds, 4.0 if quick else 10.0, score_6dof, SIXDOF_FIGURES, Path(tmp))
@@ -164,16 +171,19 @@ def _omega_error(own: np.ndarray, h5: Path) -> float:
 
 def speed_6dof(h5: Path) -> dict:
     """The 6-DoF tracker's updates per CPU second on one core, fed 1 ms packets of a `sim:6dof` recording,
-    aligning to the map the loop built of it (built beforehand, not timed)."""
+    aligning to the map the loop built of it (built beforehand, not timed), its rotation predicted by the
+    recording's gyro."""
     with open_recording(h5) as rec:
         events = np.concatenate(list(rec.chunks()))
         K, w, h = rec.K_or_default(), rec.width, rec.height
         truth = Trajectory(rec.truth.poses)
+        gyro = Gyro()
+        gyro.add(*rec.imu()[:2])
     mapper = KeyframeMapper(K, w, h, LoopParams().keyframes)
     points = [kf.points for kf in mapper.add(events, truth)]
     start = int(truth.start_us)
     events = events[events["t"] >= start]
-    tracker = SixDofTracker(K, w, h)
+    tracker = SixDofTracker(K, w, h, gyro=gyro)
     for p in points:
         tracker.add_points(p)
     (R0,), (p0,) = truth.at(start)

@@ -171,7 +171,8 @@ def format_results(results: dict) -> str:
                          f"{row['ate_rot_deg']:.2f} deg, RPE "
                          + (f"{row['rpe_deg_per_s']:.2f} deg/s {row['rpe_cm_per_s']:.1f} cm/s" if "rpe_deg_per_s" in row
                             else "none (under a second of poses)")
-                         + f", {row['lost']:.0f} updates lost, {row['keyframes']:.0f} keyframes")
+                         + f", {row['lost']:.0f} updates lost, {row['keyframes']:.0f} keyframes; without the IMU "
+                         f"{row['no_imu_ate_percent']:.2f} %, {row['no_imu_lost']:.0f} lost")
             if "live_ate_m" in row:
                 lines.append(f"{'':>{len(row['stage']) + 16}}live: own poses from {row['live_started_s']:.2f} s, "
                              f"{row['live_poses']:.0f} of them, {row['live_lost']:.0f} updates lost, ATE "
