@@ -118,7 +118,8 @@ def test_gyro_turns_between_two_times_and_learns_its_bias_from_the_vision() -> N
 def test_the_6dof_tracker_turns_with_the_gyro_and_learns_its_bias() -> None:
     """The camera of `test_sixdof`'s scene moving sideways and turning (0.3 m/s, 10 deg/s) with a gyro 1 deg/s off:
     the tracker follows it within 1 cm, learning the bias on the way (under half of it left after 1 s); lost on
-    uniform noise for 0.2 s, its prediction still turns as the gyro says (0.2 s at 10 deg/s is 2 deg)."""
+    uniform noise for 0.2 s, its prediction still turns as the gyro says (0.2 s at 10 deg/s is 2 deg) and goes on
+    at the last velocity."""
     points = box_edges()
     velocity, omega = np.array([0.3, 0.0, 0.1]), np.radians([0.0, 10.0, 0.0])
     bias = np.radians([0.6, -0.6, 0.5])  # about 1 deg/s
@@ -140,7 +141,11 @@ def test_the_6dof_tracker_turns_with_the_gyro_and_learns_its_bias() -> None:
     noise["t"] = np.sort(rng.integers(1_000_000, 1_200_000, len(noise)))
     noise["x"], noise["y"] = rng.integers(0, W, len(noise)), rng.integers(0, H, len(noise))
     tracker.add(noise)
-    R0, _, turned = tracker._predict(1_200_000)
+    R0, t0, turned = tracker._predict(1_200_000)
     assert turned
     want = R_last @ Rotation.from_rotvec(omega * (1_200_000 - t_last) * 1e-6).as_matrix()
     assert np.degrees(Rotation.from_matrix(R0.T @ want.T).magnitude()) < 0.3
+    (t_a, R_a, c_a), (t_b, R_b, c_b) = tracker._poses[0], tracker._poses[-1]  # the good poses kept (T_cam_world)
+    centre_a, centre_b = -R_a.T @ c_a, -R_b.T @ c_b
+    went = centre_b + (centre_b - centre_a) / (t_b - t_a) * (1_200_000 - t_b)  # on at their velocity
+    assert np.linalg.norm(-R0.T @ t0 - went) < 1e-6 and np.linalg.norm(went - centre_b) > 0.02
