@@ -28,6 +28,9 @@ from services.tracker.ego.gyro import Gyro
 from services.tracker.ego.rotation import LOST, TRACKING  # an estimate's states, as the rotation tracker's
 
 
+GYRO_KEPT_US = 10_000_000  # gyro samples kept while lost, behind the latest update (a live loss may last long)
+
+
 @dataclass
 class SixDofParams:
     step_us: int = 20_000  # an estimate this often (50 Hz)
@@ -285,11 +288,12 @@ class SixDofTracker:
             if self.gyro is not None and not recovered:  # its turn since the last good pose, seen
                 t_last, R_last, _ = self._poses[-1]
                 self.gyro.learn(t_last, t_us, R_last @ R.T)
-                self.gyro.forget_before(t_us)  # predictions start from this pose on
             self._poses = [*([] if recovered else self._poses), (t_us, R, t)][-p.velocity_updates - 1:]
             (ta, Ra, _), (tb, Rb, _) = self._poses[0], self._poses[-1]
             if tb > ta:  # the turn from the oldest kept camera to the latest, in the camera's frame
                 omega = cv2.Rodrigues(Ra @ Rb.T)[0].ravel() / ((tb - ta) / 1e6)
+        if self.gyro is not None:  # predictions start from the last good pose; lost for long, it is too old to turn from
+            self.gyro.forget_before(max(self._poses[-1][0], t_us - GYRO_KEPT_US))
         return PoseEstimate(t_us, R.T, -R.T @ t, self.state, share, len(points), omega)
 
     def _visible(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
