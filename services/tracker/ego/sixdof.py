@@ -292,7 +292,7 @@ class SixDofTracker:
             (ta, Ra, _), (tb, Rb, _) = self._poses[0], self._poses[-1]
             if tb > ta:  # the turn from the oldest kept camera to the latest, in the camera's frame
                 omega = cv2.Rodrigues(Ra @ Rb.T)[0].ravel() / ((tb - ta) / 1e6)
-        if self.gyro is not None:  # predictions start from the last good pose; lost for long, it is too old to turn from
+        if self.gyro is not None:  # predictions start from the last good pose (lost for long, too old to turn from)
             self.gyro.forget_before(max(self._poses[-1][0], t_us - GYRO_KEPT_US))
         return PoseEstimate(t_us, R.T, -R.T @ t, self.state, share, len(points), omega)
 
