@@ -300,8 +300,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     summary = simulate(args.scene, _output(args.out), args.duration, args.seed, progress=not args.json, params=params,
                        scene_args=scene_args)
     print(json.dumps(summary) if args.json else f"wrote {summary['events']} events of sim:{args.scene} "
-          f"({args.duration} s, seed {args.seed}), {summary['truth_boxes']} truth boxes and "
-          f"{summary['truth_poses']} truth poses to {args.out}")
+          f"({args.duration} s, seed {args.seed}), {summary['truth_boxes']} truth boxes, "
+          f"{summary['truth_poses']} truth poses and {summary['imu_samples']} IMU samples to {args.out}")
     return 0
 
 
@@ -629,7 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="one JSON object per report")
     p.set_defaults(func=_cmd_hz)
 
-    p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth")
+    p = sub.add_parser("sim", help="simulate a scene into an ETAM HDF5 file with ground truth (and, for 6dof and "
+                                   "stereo, the moving camera's IMU)")
     p.add_argument("scene", choices=("objects", "rotation", "6dof", "stereo"), help="scene to simulate")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")

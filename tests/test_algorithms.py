@@ -378,6 +378,10 @@ def test_simulator_refractory_hot_pixels_and_settable_parameters() -> None:
         SimParams.parse(["speed=3"])
     with pytest.raises(ValueError, match="expected a number"):
         SimParams.parse(["contrast=high"])
+    with pytest.raises(ValueError, match="imu_rate_hz=0: expected a positive rate"):
+        SimParams.parse(["imu_rate_hz=0"])
+    with pytest.raises(ValueError, match="gyro_bias=-1: expected 0 or more"):
+        SimParams.parse(["gyro_bias=-1"])
 
 
 def _blob_image(boxes: list[list[float]], seed: int = 0) -> np.ndarray:

@@ -72,6 +72,11 @@ class SimParams:
                 setattr(params, name, (int if kinds[name] in (int, "int") else float)(value))
             except ValueError:
                 raise ValueError(f"simulator parameter {name}={value!r}: expected a number") from None
+        if params.imu_rate_hz <= 0:
+            raise ValueError(f"simulator parameter imu_rate_hz={params.imu_rate_hz:g}: expected a positive rate")
+        for name in ("gyro_noise", "gyro_bias", "accel_noise", "accel_bias"):
+            if getattr(params, name) < 0:
+                raise ValueError(f"simulator parameter {name}={getattr(params, name):g}: expected 0 or more")
         return params
 
 
