@@ -92,10 +92,10 @@ def run(quick: bool = False) -> list[dict]:
             done = odometry(h5, tum, progress=False, mode="6dof")
             aligned = {f"{a}_ate_percent": eval_odometry(tum, h5, a)["ate_percent_of_distance"]
                        for a in ("se3", "sim3")}
-            scores = eval_odometry(tum, h5, "origin")
-            blind = odometry(h5, tum, progress=False, mode="6dof", imu=False)
-            return {**scores, "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
-                    "no_imu_ate_percent": eval_odometry(tum, h5, "origin")["ate_percent_of_distance"],
+            blind_tum = Path(tmp) / f"{h5.stem}-no-imu.tum"
+            blind = odometry(h5, blind_tum, progress=False, mode="6dof", imu=False)
+            return {**eval_odometry(tum, h5, "origin"), "lost": done["lost"], "keyframes": done["keyframes"], **aligned,
+                    "no_imu_ate_percent": eval_odometry(blind_tum, h5, "origin")["ate_percent_of_distance"],
                     "no_imu_lost": blind["lost"], **live_loop(h5, Path(tmp) / f"{h5.stem}-live.tum")}
 
         for stage, scene in (("odometry 6dof", "6dof"), ("odometry 6dof stereo", "stereo")):

@@ -1,8 +1,8 @@
 """A simulated IMU on the moving camera of the `6dof` and `stereo` scenes, as the DAVIS346's and the
 DVXplorer's built-in ones: gyro and accelerometer samples in the camera's frame at a fixed rate.
 
-The rates are the scene's exact motion (the body rate from the relative rotation a millisecond apart,
-the specific force from the second difference of its position, less gravity), plus each sensor's white
+The rates are the scene's exact motion (its body rate, `omega`, and the specific force from the second
+difference of its position, less gravity), plus each sensor's white
 noise and a constant bias drawn per seed: a MEMS gyro that was not calibrated at rest is off by some
 tenths of a degree per second, which over seconds is degrees of orientation, so whoever uses it must
 estimate that bias. Gravity points along the world's +y (down: the world is the first camera's frame
@@ -19,11 +19,13 @@ from scipy.spatial.transform import Rotation
 from services.camera.simulator import SimParams
 
 GRAVITY_M_S2 = 9.81
-STEP_US = 1_000  # the finite differences' half step
+STEP_US = 1_000  # the second difference's half step
 
 
 class MovingCamera(Protocol):
     def rotation(self, t_us: np.ndarray) -> Rotation: ...  # camera to world, one per time
+
+    def omega(self, t_us: np.ndarray) -> np.ndarray: ...  # body rate (rad/s, camera frame), N x 3
 
     def position(self, t_us: np.ndarray) -> np.ndarray: ...  # camera centre in the world (m), N x 3
 
@@ -55,9 +57,8 @@ class SimulatedImu:
         """The noiseless body rate (rad/s) and specific force (m/s^2) in the camera's frame at times `t_us`."""
         t = np.asarray(t_us, np.float64)
         h = STEP_US
-        before, now, after = (self.camera.rotation(t + d) for d in (-h, 0, h))
-        gyro = (before.inv() * after).as_rotvec() / (2 * h * 1e-6)
+        gyro = self.camera.omega(t)
         p = [self.camera.position(t + d) for d in (-h, 0, h)]
         accel_world = (p[2] - 2 * p[1] + p[0]) / (h * 1e-6) ** 2
         gravity = np.array([0.0, GRAVITY_M_S2, 0.0])
-        return gyro.reshape(-1, 3), now.inv().apply(accel_world - gravity).reshape(-1, 3)
+        return gyro.reshape(-1, 3), self.camera.rotation(t).inv().apply(accel_world - gravity).reshape(-1, 3)

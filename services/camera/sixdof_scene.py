@@ -117,7 +117,8 @@ class SixDofScene:
         """Position (m) and quaternion x y z w of T_world_cam."""
         return self.position(t_us), self.rotation(t_us).as_quat()
 
-    def omega(self, t_us: float) -> np.ndarray:
+    def omega(self, t_us: float | np.ndarray) -> np.ndarray:
+        """The body rate (rad/s, in the camera's frame; 3, or N x 3)."""
         h = 50.0
         return (self.rotation(t_us - h).inv() * self.rotation(t_us + h)).as_rotvec() / (2 * h * 1e-6)
 

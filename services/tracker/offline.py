@@ -136,9 +136,8 @@ def _gyro(rec: Recording) -> Gyro | None:
     imu = rec.imu()
     if imu is None or not len(imu[0]):
         return None
-    order = np.argsort(imu[0], kind="stable")
     gyro = Gyro()
-    gyro.add(imu[0][order], imu[1][order])
+    gyro.add(*imu[:2])
     return gyro
 
 

@@ -36,7 +36,8 @@ class MapFollower:
     `known` and `add_map` may be called while `add` runs in another thread."""
 
     def __init__(self, K: np.ndarray, width: int, height: int, params: SixDofParams | None = None) -> None:
-        self.tracker = SixDofTracker(K, width, height, params, gyro=Gyro())
+        self.gyro = Gyro()  # the camera's samples, where it sends any
+        self.tracker = SixDofTracker(K, width, height, params, gyro=self.gyro)
         self._known: collections.deque[list[float]] = collections.deque(maxlen=KNOWN_KEPT)  # TUM rows
         self._lock = threading.Lock()  # the known poses, and whether it started
         self._started = False
@@ -68,8 +69,7 @@ class MapFollower:
     def add_imu(self, t_us: np.ndarray, gyro: np.ndarray) -> None:
         """Gyro samples (rad/s, N x 3, in the camera's frame) of the camera followed; until they cover an update
         (or where they stop), its rotation is predicted from the poses alone."""
-        assert self.tracker.gyro is not None
-        self.tracker.gyro.add(t_us, gyro)
+        self.gyro.add(t_us, gyro)
 
     def add_map(self, points: np.ndarray, t_us: int) -> None:
         """World points (N x 3) of one more part of the map, seen from its keyframe at `t_us`."""

@@ -35,10 +35,11 @@ class Gyro:
         self._lock = threading.Lock()
 
     def add(self, t_us: np.ndarray, gyro: np.ndarray) -> None:
-        """Samples (t_us, rad/s N x 3 in the camera's frame) after those added before; older or repeated times are
-        left out."""
-        t_us = np.asarray(t_us, np.int64).ravel()
-        gyro = np.asarray(gyro, np.float64).reshape(-1, 3)
+        """Samples (t_us, rad/s N x 3 in the camera's frame), in any order; times at or before the latest added
+        before are left out."""
+        order = np.argsort(np.asarray(t_us, np.int64).ravel(), kind="stable")
+        t_us = np.asarray(t_us, np.int64).ravel()[order]
+        gyro = np.asarray(gyro, np.float64).reshape(-1, 3)[order]
         with self._lock:
             newer = t_us > (self._t[-1] if len(self._t) else np.iinfo(np.int64).min)
             self._t, self._w = np.concatenate([self._t, t_us[newer]]), np.concatenate([self._w, gyro[newer]])
