@@ -112,6 +112,11 @@ def format_results(results: dict) -> str:
                      f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
                      f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.1f} "
                      f"IDF1 {row['idf1']:.3f} MOTA {row['mota']:.3f}  ({row['method']})")
+        if "id_switches_crossing" in row:  # where the errors are (means only)
+            split = " ".join(f"{k} {v:.3f}" if v is not None else f"{k} -" for k, v in (
+                ("crossing", row["precision20_crossing"]), ("clear", row["precision20_clear"])))
+            lines.append(f"{'':<26} IDsw/obj/min at crossings {row['id_switches_crossing']:.2f}, on return "
+                         f"{row['id_switches_return']:.2f}, other {row['id_switches_other']:.2f}; P@20 {split}")
     for row in results.get("tracker", []):
         p99 = f", p99 {row['update_ms_p99']:.2f}" if "update_ms_p99" in row else ""
         lines.append(f"{row['stage']} {row['method']:<20} {row['window_ms']:.0f} ms windows: "

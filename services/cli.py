@@ -390,6 +390,8 @@ def _cmd_eval_mosaic(args: argparse.Namespace) -> int:
 
 def _print_scores(scores: dict) -> None:
     for k, v in scores.items():
+        if isinstance(v, dict):  # counts by kind, say
+            v = ", ".join(f"{name} {n}" for name, n in v.items())
         print(f"{k:>30}: {v:.3f}" if isinstance(v, float) else f"{k:>30}: {v}")
 
 
@@ -436,7 +438,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     events = scores.pop("id_switch_events")
     _print_scores(scores)
     for e in events:  # where to look: the time, the truth object, the track ids before and after
-        print(f"{'id switch':>30}: {e['t_us'] / 1e6:.3f} s, object {e['object']}: track {e['from_id']} -> {e['to_id']}")
+        print(f"{'id switch':>30}: {e['t_us'] / 1e6:.3f} s, object {e['object']}: track {e['from_id']} -> {e['to_id']}"
+              f" ({e['cause']})")
     return 0
 
 

@@ -39,7 +39,8 @@ def test_misses_false_boxes_shifts_stale_frames_and_id_switches_are_counted() ->
     switched = truth.copy()
     switched[(switched[:, 1] == 1) & (switched[:, 0] >= 500_000), 1] = 7  # object 1's track changes id once
     s = evaluate(switched, truth)
-    assert s.id_switches == 1 and s.id_switch_events == [{"t_us": 500_000, "object": 1, "from_id": 1, "to_id": 7}]
+    assert s.id_switches == 1 and s.id_switch_events == [
+        {"t_us": 500_000, "object": 1, "from_id": 1, "to_id": 7, "cause": "other"}]
     sparse = truth[truth[:, 0] % 100_000 == 0]  # predictions every 100 ms: older than the 20 ms allowed
     assert evaluate(sparse, truth).op50 == pytest.approx(2 / 5)  # at 3 of every 5 truth frames
     assert evaluate(np.zeros((0, 6)), truth).op50 == 0.0
@@ -75,6 +76,32 @@ def test_an_object_keeps_its_matched_id_while_it_still_overlaps_as_in_clear_mot(
     assert s.id_switches == 0 and s.op50 == 1.0
     pred[20:, 1] = np.where(k >= 10, 9, 6)  # the second track changes id once
     assert evaluate(pred, truth).id_switches == 1
+
+
+def test_switches_are_put_down_to_crossings_and_returns_and_precision_is_split_by_crossing() -> None:
+    # object 1 moves right and passes over a still object 2 (boxes overlapping from frame 16 to 34); object 3,
+    # far away, is out of view (unscored) from frame 20 to 29
+    k = np.arange(50)
+    one = np.c_[k * 20_000, np.full(50, 1), 2.0 * k, np.full(50, 20.0), np.full(50, 20.0), np.full(50, 20.0)]
+    two = np.c_[k * 20_000, np.full(50, 2), np.full(50, 50.0), np.full(50, 20.0), np.full(50, 20.0), np.full(50, 20.0)]
+    three = np.c_[k * 20_000, np.full(50, 3), np.full(50, 200.0), np.full(50, 150.0), np.full(50, 20.0),
+                  np.full(50, 20.0)]
+    truth = np.concatenate([one, two, three[(k < 20) | (k >= 30)]])
+    pred = truth.copy()
+    pred[(pred[:, 1] == 1) & (pred[:, 0] >= 30 * 20_000), 1] = 7  # a new id after the crossing (frame 30)
+    pred[(pred[:, 1] == 3) & (pred[:, 0] >= 30 * 20_000), 1] = 8  # and on its return
+    pred[(pred[:, 1] == 8) & (pred[:, 0] >= 45 * 20_000), 1] = 9  # and once more, long after it came back
+    moved = (pred[:, 1] == 2) & (pred[:, 0] >= 16 * 20_000) & (pred[:, 0] < 35 * 20_000)
+    pred[moved, 2] += 30  # object 2's box 30 px off while the other touches it
+    s = evaluate(pred, truth)
+    causes = {e["object"]: [] for e in s.id_switch_events}
+    for e in s.id_switch_events:
+        causes[e["object"]].append(e["cause"])
+    assert causes == {1: ["crossing"], 3: ["return", "other"]}
+    assert s.id_switches_by_cause == {"crossing": 1, "return": 1, "other": 1}
+    assert s.crossing_share == pytest.approx(38 / 140)  # 19 frames of two boxes overlapping, of 140 truth boxes
+    assert s.precision20_crossing == pytest.approx(0.5) and s.precision20_clear == 1.0
+    assert evaluate(pred, one).precision20_crossing is None  # nothing crosses: no figure, not a perfect one
 
 
 def test_mota_and_idf1_agree_with_py_motmetrics() -> None:
@@ -135,6 +162,8 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
                           text=True, timeout=120).stdout
     assert f"precision20: {scores['precision20']:.3f}" in text  # the same figures, one per line, and each switch
     assert text.count("id switch:") == scores["id_switches"] == len(scores["id_switch_events"])
+    causes = scores["id_switches_by_cause"]
+    assert f"id_switches_by_cause: crossing {causes['crossing']}, return {causes['return']}" in text
     bad = subprocess.run(etam_argv("eval", "tracking", "--pred", str(h5), "--truth", str(h5)), capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and "not a tracks CSV" in bad.stderr and "Traceback" not in bad.stderr
@@ -178,6 +207,10 @@ def test_bench_held_out_scores_the_default_method_on_seeds_kept_from_tuning() ->
     assert 0.3 < rows[0]["op50"] <= 1 and rows[0]["false_positives_per_s"] >= 0
     text = suite.format_results({"machine": {}, "tracking-held-out": rows})
     assert "tracking accuracy held out seed mean of 4 (71-74): OP50" in text
+    row = rows[0]  # where the errors are: the causes add up to the switches, precision split by crossing
+    assert sum(row[f"id_switches_{c}"] for c in ("crossing", "return", "other")) == pytest.approx(
+        row["id_switches_per_object_minute"])
+    assert "IDsw/obj/min at crossings" in text and "P@20 crossing" in text
 
 
 def test_the_placement_ceiling_puts_tracks_sharing_a_blob_on_the_truth_boxes_they_overlap() -> None:

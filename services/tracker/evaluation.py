@@ -15,6 +15,11 @@ of overlapping targets swap matches from frame to frame and count as switches. F
   between the first and last count too (any box there is false);
 - id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes, each also
   listed (time, object, the id before and after) so that a tracker's faults can be looked up;
+- where the errors are, so that a tracker's weak spot is told from a number: each switch is put down to
+  a crossing (the object's box touched another object's, scored or not, within `CROSSING_US` before it),
+  else to a return (the object was not scored for `RETURN_US` or more before it: back in view), else to
+  neither; precision@20 is also given apart for truth boxes that touch another object's box and for those
+  clear of every other (occlusion-level breakdowns, as MOT benchmarks give);
 - MOTA (CLEAR MOT): 1 - (misses + false boxes + id switches) / truth boxes;
 - IDF1, IDP, IDR (Ristani et al. 2016): each truth object is paired with at most one track id for the
   whole sequence (the pairing that shares most frames at IoU >= 0.5); IDF1 is the F1 score of those
@@ -32,6 +37,10 @@ from scipy.optimize import linear_sum_assignment
 
 from services.tracker.objects.association import intersection, iou
 
+CROSSING_US = 500_000  # a switch this soon after its object's box touched another's is put down to the crossing
+RETURN_US = 200_000  # ... else one after the object went unscored this long, to its return into view
+SWITCH_CAUSES = ("crossing", "return", "other")
+
 
 @dataclass
 class TrackingScores:
@@ -46,7 +55,11 @@ class TrackingScores:
     false_positives_per_s: float
     id_switches: int
     id_switches_per_object_minute: float
-    id_switch_events: list[dict[str, int]]  # t_us, object, from_id, to_id
+    id_switch_events: list[dict[str, int | str]]  # t_us, object, from_id, to_id, cause (one of `SWITCH_CAUSES`)
+    id_switches_by_cause: dict[str, int]
+    precision20_crossing: float | None  # precision@20 of the truth boxes touching another object's box (None: none)
+    precision20_clear: float | None  # ... and of those clear of every other
+    crossing_share: float  # the share of truth boxes touching another object's box
     mota: float
     idf1: float
     idp: float
@@ -113,8 +126,16 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     false_boxes = scored_boxes = 0
     shared: dict[tuple[int, int], int] = {}  # (object, track id) -> frames they overlap at IoU >= 0.5
     last_match: dict[int, int] = {}
-    switches: list[dict[str, int]] = []
+    switches: list[dict[str, int | str]] = []
+    crossing: list[bool] = []  # per truth box, as `ious`
+    last_scored: dict[int, float] = {}  # object -> the latest frame it was scored in
+    last_crossed: dict[int, float] = {}  # object -> the latest frame its box touched another's
     for t, gt, dont_care in zip(t_truth, truth_frames, ignore_frames, strict=True):
+        touching = _touching(gt, dont_care)
+        crossing.extend(touching.tolist())
+        for obj, touches in zip(gt[:, 1].astype(int).tolist(), touching.tolist(), strict=True):
+            if touches:
+                last_crossed[obj] = t
         k = np.searchsorted(t_pred, t, side="right") - 1
         pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
         overlap = iou(gt[:, 2:6], pr[:, 2:6]) if len(pr) else np.zeros((len(gt), 0))
@@ -130,10 +151,14 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
                 matched_pred[c] = True
                 obj, ident = int(gt[r, 1]), int(pr[c, 1])
                 if obj in last_match and last_match[obj] != ident:
-                    switches.append({"t_us": int(t), "object": obj, "from_id": last_match[obj], "to_id": ident})
+                    cause = ("crossing" if t - last_crossed.get(obj, -np.inf) <= CROSSING_US
+                             else "return" if t - last_scored.get(obj, t) >= RETURN_US else "other")
+                    switches.append({"t_us": int(t), "object": obj, "from_id": last_match[obj], "to_id": ident,
+                                     "cause": cause})
                 last_match[obj] = ident
         ious.extend(best.tolist())
         centre_err.extend(err.tolist())
+        last_scored.update(dict.fromkeys(gt[:, 1].astype(int).tolist(), t))
         scored = np.ones(len(pr), bool)  # all but unmatched boxes on a "don't care" object
         if len(dont_care) and len(pr):
             inside = intersection(pr[:, 2:6], dont_care[:, 2:6]).max(axis=1) / np.maximum(pr[:, 4] * pr[:, 5], 1e-6)
@@ -144,7 +169,8 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
             key = (int(gt[r, 1]), int(pr[c, 1]))
             shared[key] = shared.get(key, 0) + 1
     n = len(ious)
-    iou_arr, err_arr = np.asarray(ious), np.asarray(centre_err)
+    iou_arr, err_arr, crossing_arr = np.asarray(ious), np.asarray(centre_err), np.asarray(crossing, bool)
+    within20 = err_arr <= 20
     period_s = float(np.median(np.diff(t_truth))) / 1e6 if len(t_truth) > 1 else 0.0
     duration_s = len(t_truth) * period_s
     objects = len(np.unique(truth[:, 1])) if len(truth) else 0
@@ -156,16 +182,30 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
         op50=float((iou_arr >= 0.5).mean()) if n else 0.0,
         op75=float((iou_arr >= 0.75).mean()) if n else 0.0,
         success_auc=float(np.mean([(iou_arr > th).mean() for th in thresholds])) if n else 0.0,
-        precision20=float((err_arr <= 20).mean()) if n else 0.0,
+        precision20=float(within20.mean()) if n else 0.0,
         false_positives_per_s=false_boxes * period_s / duration_s if duration_s else 0.0,
         id_switches=n_switches,
         id_switches_per_object_minute=n_switches / objects / (duration_s / 60) if objects and duration_s else 0.0,
         id_switch_events=switches,
+        id_switches_by_cause={c: sum(e["cause"] == c for e in switches) for c in SWITCH_CAUSES},
+        precision20_crossing=float(within20[crossing_arr].mean()) if crossing_arr.any() else None,
+        precision20_clear=float(within20[~crossing_arr].mean()) if (~crossing_arr).any() else None,
+        crossing_share=float(crossing_arr.mean()) if n else 0.0,
         mota=1.0 - (int((iou_arr < 0.5).sum()) + false_boxes + n_switches) / n if n else 0.0,
         idf1=2 * id_tp / (n + scored_boxes) if n + scored_boxes else 0.0,
         idp=id_tp / scored_boxes if scored_boxes else 0.0,
         idr=id_tp / n if n else 0.0,
     )
+
+
+def _touching(gt: np.ndarray, dont_care: np.ndarray) -> np.ndarray:
+    """Per truth row of a frame, whether its box touches (overlaps) another object's box there, scored or not."""
+    others = np.concatenate([gt, dont_care])
+    if len(others) < 2 or not len(gt):
+        return np.zeros(len(gt), bool)
+    inter = intersection(gt[:, 2:6], others[:, 2:6])
+    inter[gt[:, 1][:, None] == others[:, 1][None, :]] = 0  # an object does not cross itself
+    return (inter > 0).any(axis=1)
 
 
 def _id_true_positives(shared: dict[tuple[int, int], int]) -> int:
