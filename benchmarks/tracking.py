@@ -107,7 +107,7 @@ def held_out(quick: bool = False) -> list[dict]:
 
 def _mean(per_seed: list[dict]) -> dict[str, float]:
     """The mean figures, with where the errors are: id switches per object-minute by cause, and precision@20
-    of the truth boxes that touch another object's and of those clear of every other."""
+    of the truth boxes that overlap another object's and of those clear of every other."""
     rate = [s["id_switches_per_object_minute"] / max(s["id_switches"], 1) for s in per_seed]
     causes = {f"id_switches_{cause}": float(np.mean([r * s["id_switches_by_cause"][cause]
                                                      for r, s in zip(rate, per_seed, strict=True)]))

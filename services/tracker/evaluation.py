@@ -16,9 +16,9 @@ of overlapping targets swap matches from frame to frame and count as switches. F
 - id switches: times the predicted id matched (IoU >= 0.5) to one truth object changes, each also
   listed (time, object, the id before and after) so that a tracker's faults can be looked up;
 - where the errors are, so that a tracker's weak spot is told from a number: each switch is put down to
-  a crossing (the object's box touched another object's, scored or not, within `CROSSING_US` before it),
+  a crossing (the object's box overlapped another object's, scored or not, within `CROSSING_US` before it),
   else to a return (the object was not scored for `RETURN_US` or more before it: back in view), else to
-  neither; precision@20 is also given apart for truth boxes that touch another object's box and for those
+  neither; precision@20 is also given apart for truth boxes that overlap another object's box and for those
   clear of every other (occlusion-level breakdowns, as MOT benchmarks give);
 - MOTA (CLEAR MOT): 1 - (misses + false boxes + id switches) / truth boxes;
 - IDF1, IDP, IDR (Ristani et al. 2016): each truth object is paired with at most one track id for the
@@ -37,7 +37,7 @@ from scipy.optimize import linear_sum_assignment
 
 from services.tracker.objects.association import intersection, iou
 
-CROSSING_US = 500_000  # a switch this soon after its object's box touched another's is put down to the crossing
+CROSSING_US = 500_000  # a switch this soon after its object's box overlapped another's is put down to the crossing
 RETURN_US = 200_000  # ... else one after the object went unscored this long, to its return into view
 SWITCH_CAUSES = ("crossing", "return", "other")
 
@@ -57,9 +57,9 @@ class TrackingScores:
     id_switches_per_object_minute: float
     id_switch_events: list[dict[str, int | str]]  # t_us, object, from_id, to_id, cause (one of `SWITCH_CAUSES`)
     id_switches_by_cause: dict[str, int]
-    precision20_crossing: float | None  # precision@20 of the truth boxes touching another object's box (None: none)
+    precision20_crossing: float | None  # precision@20 of the truth boxes overlapping another object's box (None: none)
     precision20_clear: float | None  # ... and of those clear of every other
-    crossing_share: float  # the share of truth boxes touching another object's box
+    crossing_share: float  # the share of truth boxes overlapping another object's box
     mota: float
     idf1: float
     idp: float
@@ -129,12 +129,12 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     switches: list[dict[str, int | str]] = []
     crossing: list[bool] = []  # per truth box, as `ious`
     last_scored: dict[int, float] = {}  # object -> the latest frame it was scored in
-    last_crossed: dict[int, float] = {}  # object -> the latest frame its box touched another's
+    last_crossed: dict[int, float] = {}  # object -> the latest frame its box overlapped another's
     for t, gt, dont_care in zip(t_truth, truth_frames, ignore_frames, strict=True):
-        touching = _touching(gt, dont_care)
-        crossing.extend(touching.tolist())
-        for obj, touches in zip(gt[:, 1].astype(int).tolist(), touching.tolist(), strict=True):
-            if touches:
+        overlapping = _overlapping(gt, dont_care)
+        crossing.extend(overlapping.tolist())
+        for obj, overlaps in zip(gt[:, 1].astype(int).tolist(), overlapping.tolist(), strict=True):
+            if overlaps:
                 last_crossed[obj] = t
         k = np.searchsorted(t_pred, t, side="right") - 1
         pr = pred_frames[k] if k >= 0 and t - t_pred[k] <= max_age_us else np.zeros((0, 6))
@@ -198,8 +198,8 @@ def evaluate(pred: np.ndarray, truth: np.ndarray, max_age_us: int = 20_000,
     )
 
 
-def _touching(gt: np.ndarray, dont_care: np.ndarray) -> np.ndarray:
-    """Per truth row of a frame, whether its box touches (overlaps) another object's box there, scored or not."""
+def _overlapping(gt: np.ndarray, dont_care: np.ndarray) -> np.ndarray:
+    """Per truth row of a frame, whether its box overlaps another object's box there, scored or not."""
     others = np.concatenate([gt, dont_care])
     if len(others) < 2 or not len(gt):
         return np.zeros(len(gt), bool)
