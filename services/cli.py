@@ -240,6 +240,17 @@ def _cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    """An argparse type: a whole number above 0, or a message that names what was given."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number above 0")
+    return value
+
+
 def _output(path: str) -> Path:
     """A file a command will write, checked before the work: a missing folder is named at once, not
     after minutes of tracking or simulating."""
@@ -429,17 +440,25 @@ def _cmd_eval_map(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from services.tracker.offline import eval_tracking
+    from services.tracker.offline import eval_tracking, read_tracks, switch_snapshots
 
     scores = eval_tracking(Path(args.pred), Path(args.truth))
+    if args.snapshots:
+        drawn = switch_snapshots(Path(args.truth), read_tracks(Path(args.pred)), scores["id_switch_events"],
+                                 _output(args.snapshots), args.most)
+        scores["snapshots"] = {"file": args.snapshots if drawn else None, "switches_drawn": drawn}
     if args.json:
         print(json.dumps(scores))
         return 0
     events = scores.pop("id_switch_events")
+    shots = scores.pop("snapshots", None)
     _print_scores(scores)
     for e in events:  # where to look: the time, the truth object, the track ids before and after
         print(f"{'id switch':>30}: {e['t_us'] / 1e6:.3f} s, object {e['object']}: track {e['from_id']} -> {e['to_id']}"
               f" ({e['cause']})")
+    if shots is not None:
+        print(f"drew the first {shots['switches_drawn']} id switches into {args.snapshots}" if shots["file"]
+              else "no id switches to draw")
     return 0
 
 
@@ -699,6 +718,9 @@ def build_parser() -> argparse.ArgumentParser:
                                           "(each listed with its time, object and ids), MOTA, IDF1")
     q.add_argument("--pred", required=True, help="tracks CSV from etam track")
     q.add_argument("--truth", required=True, help="a recording with /truth/boxes (e.g. from etam sim objects)")
+    q.add_argument("--snapshots", metavar="FILE.png", help="also draw each id switch (the event frames 0.2 s "
+                                                           "before it and at it, truth and tracked boxes) into a PNG")
+    q.add_argument("--most", type=_positive_int, default=8, help="switches drawn at most (default 8)")
     q.add_argument("--json", action="store_true", help="machine-readable output")
     q.set_defaults(func=_cmd_eval)
     q = kinds.add_parser("map", help="depth errors of a map's points against truth depth (mean, median, share "

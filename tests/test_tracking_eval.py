@@ -176,6 +176,47 @@ def test_track_then_eval_on_a_simulated_sequence(tmp_path: Path) -> None:
         assert "o.h5:" not in bad.stderr and csv.stat().st_mtime_ns == written
 
 
+def test_eval_draws_each_id_switch_before_and_at_it(tmp_path: Path) -> None:
+    import cv2
+
+    h5 = tmp_path / "o.h5"
+    subprocess.run(etam_argv("sim", "objects", "--out", str(h5), "--duration", "3", "--seed", "3", "--json"),
+                   check=True, capture_output=True, timeout=120)
+    with open_recording(h5) as rec:
+        truth = rec.truth.boxes[:, :6].astype(np.float64)
+    objects = np.unique(truth[:, 1])
+    pred = truth.copy()
+    for obj, at in zip(objects[:2], (1_000_000, 2_000_000), strict=False):  # each of two objects changes id once
+        pred[(pred[:, 1] == obj) & (pred[:, 0] >= at), 1] = 100 + obj
+    csv = tmp_path / "t.csv"
+    np.savetxt(csv, np.c_[pred, np.ones(len(pred))], delimiter=",", header="t_us,id,x,y,w,h,score", comments="",
+               fmt=["%d", "%d", "%.2f", "%.2f", "%.2f", "%.2f", "%.3f"])
+    png = tmp_path / "switches.png"
+    run = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5), "--snapshots", str(png),
+                                   "--json"), capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    scores = json.loads(run.stdout)
+    n = min(len(objects), 2)
+    assert scores["id_switches"] == n and scores["snapshots"] == {"file": str(png), "switches_drawn": n}
+    grid = cv2.imread(str(png))
+    assert grid.shape == (n * 260, 2 * 346, 3)  # a row per switch: the frame before it, and at it
+    yellow = (grid[..., 0] < 60) & (grid[..., 1] > 200) & (grid[..., 2] > 200)
+    assert yellow[:260, 346:].any()  # the switched object's truth box is drawn apart from the others
+    run = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5), "--snapshots",
+                                   str(png), "--most", "1"), capture_output=True, text=True, timeout=120)
+    assert "drew the first 1 id switches" in run.stdout and cv2.imread(str(png)).shape == (260, 2 * 346, 3)
+    clean = tmp_path / "clean.csv"
+    np.savetxt(clean, np.c_[truth, np.ones(len(truth))], delimiter=",", header="t_us,id,x,y,w,h,score",
+               comments="", fmt=["%d", "%d", "%.2f", "%.2f", "%.2f", "%.2f", "%.3f"])
+    none = tmp_path / "none.png"
+    run = subprocess.run(etam_argv("eval", "tracking", "--pred", str(clean), "--truth", str(h5), "--snapshots",
+                                   str(none)), capture_output=True, text=True, timeout=120)
+    assert "no id switches to draw" in run.stdout and not none.exists()
+    bad = subprocess.run(etam_argv("eval", "tracking", "--pred", str(csv), "--truth", str(h5), "--most", "0"),
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "not a whole number above 0" in bad.stderr
+
+
 def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
     from benchmarks import tracking
 

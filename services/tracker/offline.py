@@ -20,6 +20,7 @@ from services.tracker.ego import ODOMETRY_MODES
 from services.tracker.ego.evaluation import evaluate_odometry
 from services.tracker.ego.gyro import Gyro
 from services.mapper.offline import map_method, stereo_mapper
+from services.messages import EVENT_DTYPE
 from services.tracker.ego.loop import LoopParams, MappedOdometry, loop_params
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
 from services.tracker.evaluation import evaluate
@@ -220,31 +221,74 @@ def eval_tracking(pred: Path, truth: Path) -> dict[str, Any]:
 def snapshots(src: Path, tracks: np.ndarray, out: Path, n: int = 6, window_us: int = 30_000) -> None:
     """A PNG of `n` event frames, evenly spread over the recording, with the tracked boxes and ids
     of the nearest update drawn on them (ON events white, OFF grey)."""
-    import cv2
+    ev, width, height = _all_events(src)
+    times = np.linspace(int(ev["t"][0]) + window_us, int(ev["t"][-1]), n).astype(np.int64)
+    tiles = [_frame(ev, width, height, int(t), window_us, tracks, caption=f"{t / 1e6:.3f} s") for t in times]
+    _write_grid(tiles, min(3, n), out)
 
+
+def switch_snapshots(src: Path, tracks: np.ndarray, switches: list[dict], out: Path, most: int = 8,
+                     before_us: int = 200_000, window_us: int = 30_000) -> int:
+    """A PNG with a row per id switch (the first `most`): the event frame `before_us` before it and the one
+    at it, the truth boxes in green (the switched object's yellow; labelled o<object>) under the tracked
+    boxes and ids; what `etam eval tracking --snapshots` draws, so that a switch is seen, not only listed.
+    The number of switches drawn."""
+    ev, width, height = _all_events(src)
     with open_recording(src) as rec:
-        ev = np.concatenate([c for c in rec.chunks() if len(c)])
+        truth = rec.truth.boxes
+    tiles = []
+    for e in switches[:most]:
+        t = int(e["t_us"])
+        for at in (t - before_us, t):
+            caption = (f"{at / 1e6:.3f} s  o{e['object']}: {e['from_id']} -> {e['to_id']}"
+                       + (f" ({e['cause']})" if at == t and "cause" in e else ""))
+            tiles.append(_frame(ev, width, height, at, window_us, tracks, truth, e["object"], caption))
+    if tiles:
+        _write_grid(tiles, 2, out)
+    return len(tiles) // 2
+
+
+def _all_events(src: Path) -> tuple[np.ndarray, int, int]:
+    with open_recording(src) as rec:
+        ev = np.concatenate([c for c in rec.chunks() if len(c)] or [np.zeros(0, EVENT_DTYPE)])
         width, height = rec.width, rec.height
     if not len(ev):
         raise ValueError(f"{src}: no events to draw")
-    times = np.linspace(int(ev["t"][0]) + window_us, int(ev["t"][-1]), n).astype(np.int64)
-    updates = np.unique(tracks[:, 0]) if len(tracks) else np.zeros(0)
-    tiles = []
-    for t in times:
-        frame = ev[(ev["t"] > t - window_us) & (ev["t"] <= t)]
-        img = np.zeros((height, width, 3), np.uint8)
-        img[frame["y"], frame["x"]] = np.where(frame["p"][:, None] > 0, 255, 110).astype(np.uint8)
-        k = np.searchsorted(updates, t, side="right") - 1
-        for row in tracks[tracks[:, 0] == updates[k]] if k >= 0 else []:
+    return ev, width, height
+
+
+def _frame(ev: np.ndarray, width: int, height: int, t: int, window_us: int, tracks: np.ndarray,
+           truth: np.ndarray | None = None, highlight: int | None = None, caption: str = "") -> np.ndarray:
+    """The events of `window_us` up to `t` (ON white, OFF grey) with the truth boxes of the nearest truth
+    frame at or before `t` (green, `highlight`'s yellow) and the tracked boxes of the latest update (each id
+    its colour)."""
+    import cv2
+
+    frame = ev[(ev["t"] > t - window_us) & (ev["t"] <= t)]
+    img = np.zeros((height, width, 3), np.uint8)
+    img[frame["y"], frame["x"]] = np.where(frame["p"][:, None] > 0, 255, 110).astype(np.uint8)
+    for rows, is_truth in ((truth, True), (tracks, False)):
+        times = np.unique(rows[:, 0]) if rows is not None and len(rows) else np.zeros(0)
+        k = np.searchsorted(times, t, side="right") - 1
+        for row in rows[rows[:, 0] == times[k]] if k >= 0 else []:
             x, y, w, h = (int(round(v)) for v in row[2:6])
-            colour = tuple(int(c) for c in np.random.default_rng(int(row[1])).integers(80, 256, 3))
-            cv2.rectangle(img, (x, y), (x + w, y + h), colour, 1)
-            cv2.putText(img, str(int(row[1])), (x + 2, y + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1)
-        cv2.putText(img, f"{t / 1e6:.3f} s", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 200, 255), 1)
-        tiles.append(img)
-    cols = min(3, n)
-    while len(tiles) % cols:
-        tiles.append(np.zeros_like(tiles[0]))
+            ident = int(row[1])
+            if is_truth:  # the switched object's yellow and thicker
+                colour, thick = ((0, 230, 255), 2) if ident == highlight else ((0, 170, 0), 1)
+                cv2.putText(img, f"o{ident}", (x + 2, y + h - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1)
+            else:
+                colour = tuple(int(c) for c in np.random.default_rng(ident).integers(80, 256, 3))
+                thick = 1
+                cv2.putText(img, str(ident), (x + 2, y + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1)
+            cv2.rectangle(img, (x, y), (x + w, y + h), colour, thick)
+    cv2.putText(img, caption, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 200, 255), 1)
+    return img
+
+
+def _write_grid(tiles: list[np.ndarray], cols: int, out: Path) -> None:
+    import cv2
+
+    tiles = tiles + [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
     grid = np.vstack([np.hstack(tiles[i:i + cols]) for i in range(0, len(tiles), cols)])
     if not cv2.imwrite(str(out), grid):
         raise ValueError(f"{out}: cannot write the image")
