@@ -141,14 +141,16 @@ class ObjectTracker:
 
     def _earlier(self, t_us: int, image: np.ndarray) -> tuple[int, np.ndarray] | None:
         """The latest past image at least `motion.lag_us` older than this one (with its time), if any; this
-        one (a copy: the frames reuse their array) kept for the updates to come."""
+        one (a copy: the frames reuse their array) kept for the updates to come if `motion.keep_us` after the
+        last one kept."""
         lag = self.params.motion.lag_us
         if lag <= 0:
             return None
         while len(self._past) >= 2 and t_us - self._past[1][0] >= lag:
             self._past.popleft()
         earlier = self._past[0] if self._past and t_us - self._past[0][0] >= lag else None
-        self._past.append((t_us, image.copy()))
+        if not self._past or t_us - self._past[-1][0] >= self.params.motion.keep_us:
+            self._past.append((t_us, image.copy()))
         return earlier
 
     def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray) -> np.ndarray:
