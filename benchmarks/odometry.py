@@ -51,11 +51,10 @@ from services.config import ZenohSettings
 from services.mapper.keyframes import KeyframeMapper
 from services.mapper.trajectory import Trajectory
 from services.messages import Pose, decode
-from services.tracker.ego.gyro import Gyro
 from services.tracker.ego.loop import LoopParams
 from services.tracker.ego.rotation import RotationParams, RotationTracker
 from services.tracker.ego.sixdof import SixDofParams, SixDofTracker
-from services.tracker.offline import eval_odometry, odometry
+from services.tracker.offline import eval_odometry, odometry, recorded_gyro
 
 HELD_OUT_SEEDS = (11, 12, 13)  # never looked at while choosing defaults: keep them so
 PEAKS_DEG_S = {11: 600.0, 12: 800.0, 13: 1000.0}  # each seed's motion scaled to peak at this speed
@@ -177,8 +176,7 @@ def speed_6dof(h5: Path) -> dict:
         events = np.concatenate(list(rec.chunks()))
         K, w, h = rec.K_or_default(), rec.width, rec.height
         truth = Trajectory(rec.truth.poses)
-        gyro = Gyro()
-        gyro.add(*rec.imu()[:2])
+        gyro = recorded_gyro(rec)
     mapper = KeyframeMapper(K, w, h, LoopParams().keyframes)
     points = [kf.points for kf in mapper.add(events, truth)]
     start = int(truth.start_us)

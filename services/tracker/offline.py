@@ -23,7 +23,7 @@ from services.mapper.offline import map_method, stereo_mapper
 from services.messages import EVENT_DTYPE
 from services.tracker.ego.loop import LoopParams, MappedOdometry, loop_params
 from services.tracker.ego.rotation import LOST, STILL, RotationParams, RotationTracker
-from services.tracker.evaluation import evaluate
+from services.tracker.evaluation import evaluate, split_frames
 from services.tracker.objects.association import TRACKED
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams
 
@@ -80,7 +80,7 @@ def odometry(src: Path, out: Path, params: RotationParams | None = None, progres
         method = map_method(src, rig, method)
         cameras = rig[:2] if method == "stereo" else rig[:1]
         if mode == "6dof":
-            gyro = _gyro(rec) if imu else None
+            gyro = recorded_gyro(rec) if imu else None
             tracker: RotationTracker | MappedOdometry = _loop(rec, src, cameras, bootstrap_s, start, loop_params,
                                                               gyro)
         else:
@@ -132,8 +132,8 @@ def _loop(rec: Recording, src: Path, cameras: list[Recording], bootstrap_s: floa
                           params, stereo_mapper(src, cameras, params.keyframes) if stereo else None, gyro)
 
 
-def _gyro(rec: Recording) -> Gyro | None:
-    """The recording's gyro samples, if it has any."""
+def recorded_gyro(rec: Recording) -> Gyro | None:
+    """The recording's gyro samples, if it has any (what `etam odom` and the bench's speed run predict with)."""
     imu = rec.imu()
     if imu is None or not len(imu[0]):
         return None
@@ -221,9 +221,10 @@ def eval_tracking(pred: Path, truth: Path) -> dict[str, Any]:
 def snapshots(src: Path, tracks: np.ndarray, out: Path, n: int = 6, window_us: int = 30_000) -> None:
     """A PNG of `n` event frames, evenly spread over the recording, with the tracked boxes and ids
     of the nearest update drawn on them (ON events white, OFF grey)."""
-    ev, width, height = _all_events(src)
+    ev, width, height, _ = _recorded(src)
     times = np.linspace(int(ev["t"][0]) + window_us, int(ev["t"][-1]), n).astype(np.int64)
-    tiles = [_frame(ev, width, height, int(t), window_us, tracks, caption=f"{t / 1e6:.3f} s") for t in times]
+    updates = split_frames(tracks)
+    tiles = [_frame(ev, width, height, int(t), window_us, updates, caption=f"{t / 1e6:.3f} s") for t in times]
     _write_grid(tiles, min(3, n), out)
 
 
@@ -233,44 +234,48 @@ def switch_snapshots(src: Path, tracks: np.ndarray, switches: list[dict], out: P
     at it, the truth boxes in green (the switched object's yellow; labelled o<object>) under the tracked
     boxes and ids; what `etam eval tracking --snapshots` draws, so that a switch is seen, not only listed.
     The number of switches drawn."""
-    ev, width, height = _all_events(src)
-    with open_recording(src) as rec:
-        truth = rec.truth.boxes
+    ev, width, height, truth = _recorded(src)
+    updates, objects = split_frames(tracks), split_frames(truth)
     tiles = []
     for e in switches[:most]:
         t = int(e["t_us"])
         for at in (t - before_us, t):
             caption = (f"{at / 1e6:.3f} s  o{e['object']}: {e['from_id']} -> {e['to_id']}"
                        + (f" ({e['cause']})" if at == t and "cause" in e else ""))
-            tiles.append(_frame(ev, width, height, at, window_us, tracks, truth, e["object"], caption))
+            tiles.append(_frame(ev, width, height, at, window_us, updates, objects, e["object"], caption))
     if tiles:
         _write_grid(tiles, 2, out)
     return len(tiles) // 2
 
 
-def _all_events(src: Path) -> tuple[np.ndarray, int, int]:
+def _recorded(src: Path) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """A recording's events (all of them, in time order), its size and its truth boxes (none: 0 rows)."""
     with open_recording(src) as rec:
         ev = np.concatenate([c for c in rec.chunks() if len(c)] or [np.zeros(0, EVENT_DTYPE)])
+        truth = rec.truth.boxes if rec.truth.boxes is not None else np.zeros((0, 6))
         width, height = rec.width, rec.height
     if not len(ev):
         raise ValueError(f"{src}: no events to draw")
-    return ev, width, height
+    return ev, width, height, truth
 
 
-def _frame(ev: np.ndarray, width: int, height: int, t: int, window_us: int, tracks: np.ndarray,
-           truth: np.ndarray | None = None, highlight: int | None = None, caption: str = "") -> np.ndarray:
-    """The events of `window_us` up to `t` (ON white, OFF grey) with the truth boxes of the nearest truth
+Frames = tuple[np.ndarray, list[np.ndarray]]  # rows split by time (`split_frames`)
+
+
+def _frame(ev: np.ndarray, width: int, height: int, t: int, window_us: int, updates: Frames,
+           truth: Frames | None = None, highlight: int | None = None, caption: str = "") -> np.ndarray:
+    """The events of `window_us` up to `t` (ON white, OFF grey) with the truth boxes of the latest truth
     frame at or before `t` (green, `highlight`'s yellow) and the tracked boxes of the latest update (each id
     its colour)."""
     import cv2
 
-    frame = ev[(ev["t"] > t - window_us) & (ev["t"] <= t)]
+    frame = ev[np.searchsorted(ev["t"], t - window_us, side="right"):np.searchsorted(ev["t"], t, side="right")]
     img = np.zeros((height, width, 3), np.uint8)
     img[frame["y"], frame["x"]] = np.where(frame["p"][:, None] > 0, 255, 110).astype(np.uint8)
-    for rows, is_truth in ((truth, True), (tracks, False)):
-        times = np.unique(rows[:, 0]) if rows is not None and len(rows) else np.zeros(0)
+    for frames, is_truth in ((truth, True), (updates, False)):
+        times, rows = frames if frames is not None else (np.zeros(0), [])
         k = np.searchsorted(times, t, side="right") - 1
-        for row in rows[rows[:, 0] == times[k]] if k >= 0 else []:
+        for row in rows[k] if k >= 0 else []:
             x, y, w, h = (int(round(v)) for v in row[2:6])
             ident = int(row[1])
             if is_truth:  # the switched object's yellow and thicker
