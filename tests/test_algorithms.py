@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -118,6 +120,22 @@ def test_association_confirms_then_holds_a_stopped_target() -> None:
         tracks = mot.update(t, np.zeros((0, 4), np.float32))
     tracks = mot.update(3_700_000, np.array([[185, 100, 20, 20]], np.float32))  # moves again near where it was
     assert tracks[0].ident == 1 and tracks[0].hits == 41
+
+
+def test_a_box_that_jumps_changes_a_tracks_velocity_little_and_a_turn_is_followed() -> None:
+    """A confirmed track's box whose edge jumps (its blob merged with another's for an update) is not a
+    target that sped up: its velocity changes by at most `max_accel_px_s2` a second; one that turns
+    is followed within a few updates."""
+    mot = MultiObjectTracker(width=346, height=260)
+    tracks = _follow(mot, 0, [100, 100, 30, 30], [1, 0, 0, 0], 20)  # 100 px/s
+    before = tracks[0].vel
+    tracks = mot.update(200_000, np.array([[120, 100, 60, 30]], np.float32))  # the right edge 30 px out
+    assert math.dist(tracks[0].vel, before) <= mot.params.max_accel_px_s2 * 0.01 + 1e-6
+    assert tracks[0].vel[0] < 200  # learnt from the jump alone it would be 550 px/s
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [100, 100, 30, 30], [1, 0, 0, 0], 20)
+    tracks = _follow(mot, 200_000, [119, 100, 30, 30], [-1, 0, 0, 0], 15)  # turned back at 100 px/s
+    assert tracks[0].vel[0] == pytest.approx(-100, abs=30)
 
 
 def test_a_young_track_whose_detections_end_is_let_go_not_held() -> None:
