@@ -122,14 +122,21 @@ class _WithTruth(ObjectTracker):
 
     def __init__(self, width: int, height: int, truth: np.ndarray) -> None:
         super().__init__(width, height, method_params(DEFAULT_METHOD))
-        self.times, frames = split_frames(truth)
-        self.truth_boxes = [rows[:, 2:6].astype(np.float32) for rows in frames]
+        self.truth_times, self.truth_rows = split_frames(truth)
 
     def _truth_at(self, t_us: int) -> np.ndarray:
-        """The boxes of the latest truth time at or before `t_us`."""
-        if not len(self.times):
+        """The boxes at `t_us`, moved on linearly towards the next truth time: the truth comes at a lower rate
+        than the updates, and a box left where it was for an update is a target that stopped, to the
+        association (it halved the velocities of fast targets, whose tracks then fell behind them)."""
+        k = int(np.searchsorted(self.truth_times, t_us, side="right")) - 1
+        if k < 0:
             return np.zeros((0, 4), np.float32)
-        return self.truth_boxes[max(int(np.searchsorted(self.times, t_us, side="right")) - 1, 0)]
+        rows = self.truth_rows[k][:, 1:6].astype(np.float64)
+        if k + 1 < len(self.truth_times) and t_us > self.truth_times[k]:
+            share = (t_us - self.truth_times[k]) / (self.truth_times[k + 1] - self.truth_times[k])
+            after = {int(r[0]): r for r in self.truth_rows[k + 1][:, 1:6]}
+            rows = np.asarray([r + share * (after[int(r[0])] - r) if int(r[0]) in after else r for r in rows])
+        return rows.reshape(-1, 5)[:, 1:].astype(np.float32)
 
 
 class TruthBoxes(_WithTruth):
