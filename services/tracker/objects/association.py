@@ -242,6 +242,10 @@ def _behind(box: Box, usual: Callable[[int], float], others: list[Box],
     not on an axis where it touches the image's border (`sides`): it is leaving there. With the box, the
     point that moves with the target on each axis, as a share of the box: its seen edge where it was
     given size back (its centre jumped), else its centre."""
+    x, y, w, h = box
+    near = (x - 2, y - 2, w + 4, h + 4)  # an edge is cut by a box up to a pixel beyond it
+    if not any(_overlap(near, o) for o in others):  # most boxes: none beside them
+        return box, (0.5, 0.5)
     out = list(box)
     anchor = [0.5, 0.5]
     for axis in (0, 1):
