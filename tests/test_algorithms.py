@@ -259,6 +259,21 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     assert [t.ident for t in tracks if t.state == TRACKED] == [2]
 
 
+def test_a_target_that_left_beside_another_is_known_back_by_its_size_over_seconds() -> None:
+    """The size a target is known by when it comes back is the median of its last seconds in view, not of
+    its last fraction of one, which it often spent in one box with a neighbour (two leave together); its
+    size now (for a box cut by a nearer one) is still the latest measurements'."""
+    none = np.zeros((0, 4), np.float32)
+    mot = MultiObjectTracker(width=346, height=260)
+    _follow(mot, 0, [40, 100, 30, 20], [2, 0, 0, 0], 100)  # 20 px tall for 1 s ...
+    tracks = _follow(mot, 1_000_000, [240, 100, 30, 32], [2, 0, 0, 0], 50)  # ... then 0.5 s with a neighbour
+    assert tracks[0].full_size(1) == pytest.approx(32, abs=1) and tracks[0].known_size(1) == pytest.approx(20, abs=1)
+    _follow(mot, 1_500_000, [340, 100, 6, 32], [0, 0, 0, 0], 2)  # out through the right border
+    mot.update(1_530_000, none)
+    tracks = _follow(mot, 1_800_000, [340, 60, 6, 20], [0, 0, 0, 0], 5)  # back alone, 20 px tall
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1]
+
+
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(40):  # a big target, and a small piece of it now and then

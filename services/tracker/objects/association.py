@@ -47,6 +47,7 @@ per-call cost on arrays of three boxes was most of an update's time.
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 from collections import deque
@@ -59,7 +60,12 @@ TENTATIVE, TRACKED, LOST = 0, 1, 2
 LEFT, TOP, RIGHT, BOTTOM = 1, 2, 4, 8  # the image borders a box touches, as bits
 CUT_X, CUT_Y = LEFT | RIGHT, TOP | BOTTOM  # borders that cut a box's width, its height
 WHOLE = 0.9  # a box this share of its track's usual size or more shows the whole target
-SIZE_MEMORY = 32  # measurements of a track's size kept for re-identification
+SIZE_NOW = 32  # the latest measurements of a track's size that tell its size now (a target's size changes as it moves)
+# measurements kept for re-identification (some 3 s of sightings): a target's last fraction of a second in view is
+# often beside another (two leave together), and its size there is theirs. On four sets of 60 dev seeds, ids
+# taken back by the median of the latest 300 instead of 32 gave IDF1 +0.01-0.02 on each set, id switches per
+# object-minute 2.18 -> 2.14 (up 0.05 on one set), precision@20 unchanged
+SIZE_MEMORY = 300
 BORDER_PX = 3  # a box this near an image border touches it: a target's edge fades out a pixel or two before it goes
 PATH_UPDATES = 8  # updates of a track's centre kept, for `MultiObjectTracker.seen_box`
 _GONE = -1  # merged or expired during an update; removed before it returns
@@ -156,7 +162,7 @@ class Track:
     rate: float = 0.0  # usual new events per update in its detection, while it moves
     own_size: tuple[float, float] | None = None  # w, h when it last had a detection of its own
     # its own widths (heights) measured while its box cleared the left and right (top and bottom) borders,
-    # the latest `SIZE_MEMORY`: their median is the size it is known by when it comes back
+    # the latest `SIZE_MEMORY`: their median is the size it is known by when it comes back (`known_size`)
     widths: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     heights: deque[float] = field(default_factory=lambda: deque(maxlen=SIZE_MEMORY))
     entering: bool = False  # confirmed young at a border and not (yet) known as a target that left
@@ -164,7 +170,13 @@ class Track:
     moved_as_one_us: int = -(1 << 62)  # when its blob's points were last found moving one way (see `_split_by_motion`)
 
     def full_size(self, axis: int) -> float | None:
-        """Its usual width (axis 0) or height (1) in full view, if ever seen so."""
+        """Its usual width (axis 0) or height (1) in full view now (its latest `SIZE_NOW` measurements), if
+        ever seen so."""
+        sizes = self.heights if axis else self.widths
+        return statistics.median(itertools.islice(reversed(sizes), SIZE_NOW)) if sizes else None
+
+    def known_size(self, axis: int) -> float | None:
+        """The width (axis 0) or height (1) it is known by when it comes back: over all its measurements kept."""
         sizes = self.heights if axis else self.widths
         return statistics.median(sizes) if sizes else None
 
@@ -823,7 +835,7 @@ class MultiObjectTracker:
         `old` was never seen whole so."""
         if axis is None:
             return max(self._misfit(new, old, 0), self._misfit(new, old, 1))
-        size, other = old.full_size(axis), old.full_size(1 - axis)
+        size, other = old.known_size(axis), old.known_size(1 - axis)
         if not size or new.box[3 - axis] > self.params.reid_size_ratio * (other or math.inf):
             return math.inf
         return abs(math.log(max(new.box[2 + axis], 1.0) / max(size, 1.0)))
