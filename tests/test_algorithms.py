@@ -274,6 +274,26 @@ def test_a_target_that_left_beside_another_is_known_back_by_its_size_over_second
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
 
 
+def test_a_target_whose_track_was_merged_as_two_left_together_takes_its_id_back_at_that_border() -> None:
+    """Two targets leaving side by side through a border form one blob there, and the smaller one's track is
+    folded into the other's; coming back in at that border with its size, it takes its id back, as a lost
+    track's target does (traced on dev seed 276, where it came back with a new id)."""
+    mot = MultiObjectTracker(width=346, height=260)
+    t_us = 0
+    for i in range(38):
+        x = 58 - 2 * i  # moving left, out of the image from i = 29
+        if i < 30:  # apart
+            boxes = [[max(x, 0), 40, 20 + min(x, 0), 20], [max(x, 0), 55, 20 + min(x, 0), 34]]
+        else:  # one blob as they leave
+            boxes = [[0, 40, 20 + x, 49]]
+        tracks = mot.update(t_us, np.array(boxes, np.float32))
+        t_us += 10_000
+    assert [t.ident for t in tracks] == [2] and [t.ident for t in mot._folded] == [1]
+    mot.update(t_us, np.zeros((0, 4), np.float32))
+    tracks = _follow(mot, t_us + 300_000, [0, 150, 4, 20], [0, 0, 2, 0], 8)  # back in, 20 px tall
+    assert [t.ident for t in tracks if t.state == TRACKED] == [1] and not mot._folded
+
+
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(40):  # a big target, and a small piece of it now and then

@@ -756,7 +756,8 @@ class MultiObjectTracker:
 
     def _reidentify(self, new: Track) -> bool:
         """Seed 002's re-detection of a target back in view: a track coming in at a border takes the id
-        of the lost track that left through that border with its size (on the axis the border does
+        of the lost track that left through that border (or that was merged into another there: two that
+        left together form one blob at the border) with its size (on the axis the border does
         not clip, and no bigger than it on the other); where two fit, only one that fits clearly better
         than the other (else it stays new, and is tried again on its next measurement while it comes
         in, as its size grows to the whole of it). Whether it took an id."""
@@ -764,7 +765,11 @@ class MultiObjectTracker:
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
-        return self._take_id(new, axis, [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides])
+        lost = [tr for tr in self.tracks if tr.state == LOST] + self._folded_before(new)
+        if not self._take_id(new, axis, [tr for tr in lost if self._sides(tr.box) & sides]):
+            return False
+        self._folded = [tr for tr in self._folded if tr.ident != new.ident]
+        return True
 
     def _out_from_behind(self, new: Track, nearer: list[Track]) -> bool:
         """The same for a target coming out from behind a nearer one: a new track beside a confirmed
@@ -788,14 +793,15 @@ class MultiObjectTracker:
         it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
         that left the image, which may come back in whole by the time its new track is confirmed, or
         in a blob with another. Whether it took an id."""
-        if self._seen_sides(new):
-            return False
-        since, forget = new.first_seen_us, self.params.forget_after_us
-        folded = [tr for tr in self._folded if tr.last_seen_us < since and since - tr.last_seen_us < forget]
-        if not self._take_id(new, None, self._unseen_since(new) + folded):
+        if self._seen_sides(new) or not self._take_id(new, None, self._unseen_since(new) + self._folded_before(new)):
             return False
         self._folded = [tr for tr in self._folded if tr.ident != new.ident]
         return True
+
+    def _folded_before(self, new: Track) -> list[Track]:
+        """The tracks merged into others (`_fold`) last seen before `new` was first seen, within `forget_after_us`."""
+        since, forget = new.first_seen_us, self.params.forget_after_us
+        return [tr for tr in self._folded if tr.last_seen_us < since and since - tr.last_seen_us < forget]
 
     def _unseen_since(self, new: Track) -> list[Track]:
         """The confirmed or lost tracks unseen since before `new` was first seen: whose target it may be."""
