@@ -756,8 +756,9 @@ class MultiObjectTracker:
 
     def _reidentify(self, new: Track) -> bool:
         """Seed 002's re-detection of a target back in view: a track coming in at a border takes the id
-        of the lost track that left through that border (or that was merged into another there: two that
-        left together form one blob at the border) with its size (on the axis the border does
+        of the lost track that left through that border, or of one merged into another before it appeared
+        (two that leave together form one blob at the border; one hidden behind a still target was folded
+        into it, and left with it), with its size (on the axis the border does
         not clip, and no bigger than it on the other); where two fit, only one that fits clearly better
         than the other (else it stays new, and is tried again on its next measurement while it comes
         in, as its size grows to the whole of it). Whether it took an id."""
@@ -765,8 +766,8 @@ class MultiObjectTracker:
         if not sides or (sides & CUT_X and sides & CUT_Y):
             return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
-        lost = [tr for tr in self.tracks if tr.state == LOST] + self._folded_before(new)
-        if not self._take_id(new, axis, [tr for tr in lost if self._sides(tr.box) & sides]):
+        left = [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides]
+        if not self._take_id(new, axis, left + self._folded_before(new)):
             return False
         self._folded = [tr for tr in self._folded if tr.ident != new.ident]
         return True
