@@ -296,6 +296,25 @@ def test_a_target_whose_track_was_merged_as_two_left_together_takes_its_id_back_
     assert [t.ident for t in tracks if t.state == TRACKED] == [1] and not mot._folded
 
 
+def test_a_piece_first_seen_apart_and_then_inside_a_targets_box_is_folded_whatever_its_velocity() -> None:
+    """A young track whose box lies inside an older one's, in one detection with it, is a piece of that target
+    first seen apart (the edge of a turning face), even where the velocities its growing box gave the two
+    differ by far more than young tracks' rough ones do; it is folded, not kept as a second target."""
+    mot = MultiObjectTracker(width=346, height=260)
+    t_us = 0
+    for _ in range(20):
+        mot.update(t_us, np.float32([[100, 100, 60, 100]]))
+        t_us += 10_000
+    for i in range(6):  # the piece apart at first, its box growing leftwards as the target's grows right
+        tracks = mot.update(t_us, np.float32([[100, 100, 60 + 4 * i, 100], [166 - 3 * i, 110, 10 + 3 * i, 30]]))
+        t_us += 10_000
+    assert len([t for t in tracks if t.state == TRACKED]) == 2 and abs(tracks[0].vel[0] - tracks[1].vel[0]) > 200
+    for _ in range(10):  # then one blob
+        tracks = mot.update(t_us, np.float32([[100, 100, 80, 100]]))
+        t_us += 10_000
+    assert [t.ident for t in tracks] == [1]
+
+
 def test_association_ignores_fragments_and_keeps_crossing_targets_apart() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(40):  # a big target, and a small piece of it now and then
@@ -711,10 +730,12 @@ def test_a_target_hidden_in_a_shared_blob_takes_the_detection_of_its_size_where_
     side as a detection of its own near where it was predicted: its track takes it (it is neither a
     fragment of the big one nor a new target)."""
     mot = MultiObjectTracker(width=346, height=260)
-    hidden = Track(2, (134, 83, 32, 25), 0, vel=(110, -48), hits=10, state=TRACKED)
+    # both seen for a second (a track under 0.3 s old inside another's box would be a piece of it)
+    hidden = Track(2, (134, 83, 32, 25), 0, vel=(110, -48), hits=100, state=TRACKED, first_seen_us=-1_000_000)
     hidden.widths.append(32)
     hidden.heights.append(25)
-    mot.tracks = [Track(1, (71, 34, 115, 119), 0, vel=(-40, -42), hits=10, state=TRACKED), hidden]
+    mot.tracks = [Track(1, (71, 34, 115, 119), 0, vel=(-40, -42), hits=100, state=TRACKED, first_seen_us=-1_000_000),
+                  hidden]
     out = (153, 75, 32, 25)
     tracks = mot.update(10_000, np.array([[72, 35, 103, 115], out], np.float32))
     by_id = {t.ident: t for t in tracks}

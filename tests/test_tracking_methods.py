@@ -12,7 +12,11 @@ from services.tracker.objects.frames import AdaptiveWindow, RecentEvents, frame_
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.sampling import key_events
 from services.tracker.objects.tracker import METHODS, ObjectTracker, method_params
+from services.tracker.offline import track
 from services.tracker.service import ObjectSizes
+from tests.conftest import SHARED
+
+PERSON = SHARED / "data" / "real" / "tonic_samples" / "sample.aedat4"  # a DVXplorer Lite recording of a person
 
 
 def _events(xs, ys, ts) -> np.ndarray:  # noqa: ANN001
@@ -158,3 +162,14 @@ print(json.dumps([loaded, [len(k.signatures) for k in kernels]]))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     loaded, after_live_packet = json.loads(out.stdout)
     assert all(loaded) and after_live_packet == loaded
+
+
+@pytest.mark.skipif(not PERSON.exists(), reason="needs ../shared/data/real")
+def test_a_person_on_a_real_recording_is_one_track_not_a_track_and_its_turning_face(tmp_path) -> None:  # noqa: ANN001
+    """The edge of the person's turning face is first seen apart from the body, then in the person's blob:
+    a piece of the person, folded into its track, not a second target boxed for the rest of the recording."""
+    out = tmp_path / "tracks.csv"
+    track(PERSON, out, progress=False)
+    ids = np.loadtxt(out, delimiter=",", skiprows=1, usecols=1, ndmin=1).astype(int)
+    main = np.bincount(ids).argmax()
+    assert (ids == main).sum() >= 50 and (ids != main).sum() <= 5, np.unique(ids, return_counts=True)
