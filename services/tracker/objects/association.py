@@ -775,10 +775,7 @@ class MultiObjectTracker:
             return False
         axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
         left = [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides]
-        if not self._take_id(new, axis, left + self._folded_before(new)):
-            return False
-        self._folded = [tr for tr in self._folded if tr.ident != new.ident]
-        return True
+        return self._take_id(new, axis, left + self._folded_before(new))
 
     def _out_from_behind(self, new: Track, nearer: list[Track]) -> bool:
         """The same for a target coming out from behind a nearer one: a new track beside a confirmed
@@ -802,10 +799,8 @@ class MultiObjectTracker:
         it appeared (or merged into another, within `forget_after_us`) fits its size on both axes; even one
         that left the image, which may come back in whole by the time its new track is confirmed, or
         in a blob with another. Whether it took an id."""
-        if self._seen_sides(new) or not self._take_id(new, None, self._unseen_since(new) + self._folded_before(new)):
-            return False
-        self._folded = [tr for tr in self._folded if tr.ident != new.ident]
-        return True
+        unseen = self._unseen_since(new) + self._folded_before(new)
+        return not self._seen_sides(new) and self._take_id(new, None, unseen)
 
     def _folded_before(self, new: Track) -> list[Track]:
         """The tracks merged into others (`_fold`) last seen before `new` was first seen, within `forget_after_us`."""
@@ -828,7 +823,8 @@ class MultiObjectTracker:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
         fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
         may cut on `new`, is not much smaller than `new`'s (`axis` None: whose sizes on both axes fit,
-        `new` seen whole); that one is removed, the sizes its id is known by going on with `new`. Only
+        `new` seen whole); that one is removed (from the folded ones too), the sizes its id is known by going on
+        with `new`. Only
         tracks once seen whole on both axes give their ids: one seen only in part (a piece of a target
         coming in beside another, lost again) is no identity to go on with. Whether it took an id."""
         p = self.params
@@ -838,6 +834,7 @@ class MultiObjectTracker:
         if len(misfit) == 1 or (len(misfit) > 1 and misfit[0][0] < p.reid_margin * misfit[1][0]):
             found = lost[misfit[0][1]]
             new.ident, found.state = found.ident, _GONE
+            self._folded = [tr for tr in self._folded if tr is not found]
             # the id's sizes go on with it: a target found again on a sliver of it is still known by its whole size
             new.widths = deque([*found.widths, *new.widths], maxlen=SIZE_MEMORY)
             new.heights = deque([*found.heights, *new.heights], maxlen=SIZE_MEMORY)
@@ -845,7 +842,7 @@ class MultiObjectTracker:
         return False
 
     def _misfit(self, new: Track, old: Track, axis: int | None) -> float:
-        """How far `new`'s size is from `old`'s usual one, as |log ratio|, on `axis` (the other, maybe cut
+        """How far `new`'s size is from the one `old` is known by, as |log ratio|, on `axis` (the other, maybe cut
         on `new`, only not much bigger than `old`'s), or the worse of both axes (`axis` None); inf where
         `old` was never seen whole so."""
         if axis is None:
