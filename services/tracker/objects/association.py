@@ -333,8 +333,7 @@ class MultiObjectTracker:
             inside = [ti for ti, a in enumerate(pred) if live[ti] and inter[ti][di] >= 0.5 * _area(a)
                       and (own_det[ti] is None or _iou(own_det[ti], det) >= 0.5)]
             if len(inside) >= 2:
-                only_here = {ti for ti in inside if not any(row > 0 for dj, row in enumerate(inter[ti]) if dj != di)}
-                members = self._merge_alike(t_us, inside, pred, det, only_here)
+                members = self._merge_alike(t_us, inside, pred, di, dets, inter)
                 if len(members) >= 2:
                     shared[di] = members
                 elif p.take_whole:  # one target after all; its box held a piece or a remnant of it
@@ -486,17 +485,18 @@ class MultiObjectTracker:
                 del shared[di_shared]
         return out
 
-    def _merge_alike(self, t_us: int, members: list[int], pred: list[Box], det: Box,
-                     only_here: set[int]) -> list[int]:
-        """Of tracks sharing detection `det`, fold each tentative one, each young one overlapping it (and
-        not clearly moving otherwise, or lying inside it and in no other detection: `only_here`), or one moving
-        with it and overlapping it, into the oldest of
+    def _merge_alike(self, t_us: int, members: list[int], pred: list[Box], di: int, dets: list[Box],
+                     overlaps: list[list[float]]) -> list[int]:
+        """Of tracks sharing detection `di` (of `dets`; `overlaps`: each track's with each detection), fold
+        each tentative one, each young one overlapping it (and not clearly moving otherwise, or lying inside it
+        and overlapping no other detection), or one moving with it and overlapping it, into the oldest of
         them (marked `_GONE`, removed after the update; but see below); the members left. Two still targets move
         alike (not at all): they are folded only if one lies (almost) wholly inside the other. Of two
         confirmed tracks found alike, the one whose box fits the detection better goes on: the target's
         own track, not one that held a piece of it or was hidden behind it (traced on a target that
         went behind a still one and was held there: its older id went on with the still one)."""
         p = self.params
+        det = dets[di]
         members.sort(key=lambda i: self.tracks[i].ident)
         keep: list[int] = []
         for i in members:
@@ -511,7 +511,8 @@ class MultiObjectTracker:
                 # a confirmed young track apart from the older one, or moving unlike it, is a second target
                 # beside it (or crossing it), not a piece
                 young = t_us - tr.first_seen_us < p.young_us and inter > 0 and (
-                    unlike <= p.young_unlike_px_s or (i in only_here and inter >= p.young_inside * _area(pred[i])))
+                    unlike <= p.young_unlike_px_s or (inter >= p.young_inside * _area(pred[i]) and not any(
+                        o > 0 for dj, o in enumerate(overlaps[i]) if dj != di)))
                 if tr.state == TENTATIVE or young or alike:
                     older.hits = tr.hits = max(older.hits, tr.hits)
                     if alike and tr.state == TRACKED and _iou(pred[i], det) > _iou(pred[k], det):
