@@ -498,12 +498,12 @@ class MultiObjectTracker:
         """Of tracks sharing detection `di` (of `dets`; `overlaps`: each track's with each detection), fold
         each tentative one, each young one overlapping it (not split off by motion, and not clearly moving
         otherwise, or lying inside it and overlapping no other detection), or one moving with it and
-        overlapping it, into the oldest of
-        them (marked `_GONE`, removed after the update; but see below); the members left. Two still targets move
-        alike (not at all): they are folded only if one lies (almost) wholly inside the other. Of two
-        confirmed tracks found alike, the one whose box fits the detection better goes on: the target's
-        own track, not one that held a piece of it or was hidden behind it (traced on a target that
-        went behind a still one and was held there: its older id went on with the still one)."""
+        overlapping it, into the oldest of them (marked `_GONE`, removed after the update; but see below);
+        the members left. Two still targets move alike (not at all): they are folded only if one lies
+        (almost) wholly inside the other. Of two confirmed tracks found alike, the one whose box fits the
+        detection better goes on: the target's own track, not one that held a piece of it or was hidden
+        behind it (traced on a target that went behind a still one and was held there: its older id went
+        on with the still one)."""
         p = self.params
         det = dets[di]
         members.sort(key=lambda i: self.tracks[i].ident)
