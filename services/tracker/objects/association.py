@@ -510,6 +510,7 @@ class MultiObjectTracker:
         keep: list[int] = []
         for i in members:
             tr = self.tracks[i]
+            only_here = not any(o > 0 for dj, o in enumerate(overlaps[i]) if dj != di)  # in no other detection
             for k in keep:
                 older = self.tracks[k]
                 inter = _overlap(pred[i], pred[k])
@@ -517,12 +518,12 @@ class MultiObjectTracker:
                 still = max(math.hypot(*tr.vel), math.hypot(*older.vel)) <= p.same_velocity_px_s
                 alike = (unlike <= p.same_velocity_px_s and _iou(pred[i], pred[k], inter) >= p.alike_iou
                          and (not still or inter >= p.still_inside * min(_area(pred[i]), _area(pred[k]))))
-                # a confirmed young track apart from the older one, or moving unlike it, is a second target
-                # beside it (or crossing it), not a piece
-                young = not tr.moved_apart and t_us - tr.first_seen_us < p.young_us and inter > 0 and (
-                    unlike <= p.young_unlike_px_s or (inter >= p.young_inside * _area(pred[i]) and not any(
-                        o > 0 for dj, o in enumerate(overlaps[i]) if dj != di)))
-                if tr.state == TENTATIVE or young or alike:
+                # a confirmed young track split off by motion, apart from the older one, or moving unlike it (and
+                # not lying inside it in this detection alone) is a second target beside it (or crossing it)
+                young = not tr.moved_apart and t_us - tr.first_seen_us < p.young_us and inter > 0
+                piece = young and (unlike <= p.young_unlike_px_s
+                                   or (inter >= p.young_inside * _area(pred[i]) and only_here))
+                if tr.state == TENTATIVE or piece or alike:
                     older.hits = tr.hits = max(older.hits, tr.hits)
                     if alike and tr.state == TRACKED and _iou(pred[i], det) > _iou(pred[k], det):
                         self._fold(older)
@@ -837,10 +838,10 @@ class MultiObjectTracker:
         """`new` takes the id of the one of `lost` whose usual size on `axis` fits its own (where two
         fit, only one that fits clearly better) and whose usual size on the other axis, which the edge
         may cut on `new`, is not much smaller than `new`'s (`axis` None: whose sizes on both axes fit,
-        `new` seen whole); that one is removed (from the folded ones too), the sizes its id is known by going on
-        with `new`. Only
-        tracks once seen whole on both axes give their ids: one seen only in part (a piece of a target
-        coming in beside another, lost again) is no identity to go on with. Whether it took an id."""
+        `new` seen whole); that one is removed (from the folded ones too), the sizes its id is known by
+        going on with `new`. Only tracks once seen whole on both axes give their ids: one seen only in part
+        (a piece of a target coming in beside another, lost again) is no identity to go on with. Whether it
+        took an id."""
         p = self.params
         limit = math.log(p.reid_size_ratio)
         misfit = sorted((m, i) for i, tr in enumerate(lost)
