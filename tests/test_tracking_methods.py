@@ -146,7 +146,7 @@ from services.messages import EVENT_DTYPE, EventPacket, decode
 from services.tracker.objects import accumulator, activity, clusters, layout, motion
 from services.tracker.objects.tracker import ObjectTracker, warm_up
 kernels = (accumulator._add, accumulator._decay, activity.count_into, activity._count_in, clusters._detect,
-           layout._placed, motion._two_groups)
+           layout._placed, motion._two_groups, motion._halves, motion._translation)
 assert not any(k.signatures for k in kernels)
 warm_up()
 loaded = [len(k.signatures) for k in kernels]

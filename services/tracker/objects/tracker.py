@@ -7,7 +7,8 @@ Every stage has the variants of the seeds, chosen by `TrackerParams`:
   Canny edges + CamShift per track, clusters for new targets) or `corner` (seed 003's feature
   method: corner clusters);
 - key-event sampling (seed 004) thins an update's events once they exceed `max_events`;
-- a young track's blob is split where its points move two ways (see `motion.py`).
+- a track's blob is split where its points move two ways, and tracks sharing a blob learn their
+  velocities from the motion of their own parts of it (see `motion.py`).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
 from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
-from services.tracker.objects.motion import MotionParams, split_by_motion
+from services.tracker.objects.motion import MotionParams, ShiftParams, part_velocity, split_by_motion
 from services.tracker.objects.sampling import key_events
 
 FRAMES = ("decay", "adaptive")
@@ -50,6 +51,7 @@ class TrackerParams:
     association: AssociationParams = field(default_factory=AssociationParams)
     layout: LayoutParams = field(default_factory=LayoutParams)
     motion: MotionParams = field(default_factory=MotionParams)
+    shift: ShiftParams = field(default_factory=ShiftParams)
 
     def __post_init__(self) -> None:
         if self.frames not in FRAMES:
@@ -80,7 +82,7 @@ def method_params(name: str) -> TrackerParams:
     base = METHODS[name]
     return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
                    adaptive=replace(base.adaptive), association=replace(base.association),
-                   layout=replace(base.layout), motion=replace(base.motion))
+                   layout=replace(base.layout), motion=replace(base.motion), shift=replace(base.shift))
 
 
 @dataclass
@@ -123,12 +125,17 @@ class ObjectTracker:
         image = self.frames.generate(t_us)
         boxes = self._detect(image, t_us)
         earlier = self._earlier(t_us, image)
-        motions = None if earlier is None else (
-            lambda det: split_by_motion(earlier[1], image, det, (t_us - earlier[0]) / 1e6, self.params.motion))
+        motions = parts = None
+        if earlier is not None:
+            past, dt_s = earlier[1], (t_us - earlier[0]) / 1e6
+            motions = lambda det: split_by_motion(past, image, det, dt_s, self.params.motion)  # noqa: E731
+            parts = lambda box, others, guess: part_velocity(  # noqa: E731
+                past, image, box, others, guess, dt_s, self.params.shift)
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
             layout=lambda preds, sizes, fills: self._layout(image, preds, sizes, fills),
-            leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions)
+            leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions,
+            parts=parts)
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
