@@ -990,6 +990,15 @@ def _textured_patch(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     return (rng.random((h, w)) < 0.3).astype(np.float32) * 2.0  # pixels with recent events, as a decayed image
 
 
+def _frame(t_s: float, patches: list) -> np.ndarray:
+    """A decayed image of (patch, (x, y) at t = 0, (vx, vy) px/s) at `t_s`, each at whole pixels."""
+    image = np.zeros((200, 260), np.float32)
+    for patch, (x, y), (vx, vy) in patches:
+        x0, y0 = int(round(x + vx * t_s)), int(round(y + vy * t_s))
+        image[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]] = patch
+    return image
+
+
 def test_tracks_sharing_a_blob_learn_their_velocities_from_their_own_parts_of_it() -> None:
     """Two targets meet and go on together as one blob, one of them having turned back as they met: each track's
     velocity follows the motion measured on its own part of the blob (the turned one's within 0.2 s), not the
@@ -1023,15 +1032,8 @@ def test_part_velocity_follows_each_targets_own_part_of_a_blob_and_nothing_plain
     a, b = _textured_patch(rng, 40, 40), _textured_patch(rng, 44, 36)
     dt_s, va, vb = 0.06, (100.0, 0.0), (-50.0, 100.0)  # 6 and 3 px, 6 px over dt: whole pixels
 
-    def frame(t_s: float, patches: list) -> np.ndarray:
-        image = np.zeros((200, 260), np.float32)
-        for patch, (x, y), (vx, vy) in patches:
-            x0, y0 = int(round(x + vx * t_s)), int(round(y + vy * t_s))
-            image[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]] = patch
-        return image
-
     pair = [(a, (60, 80), va), (b, (100, 78), vb)]  # touching: one blob
-    earlier, now = frame(-dt_s, pair), frame(0.0, pair)
+    earlier, now = _frame(-dt_s, pair), _frame(0.0, pair)
     box_a, box_b = (60, 80, 40, 40), (100, 78, 36, 44)
     for box, other, truth in ((box_a, box_b, va), (box_b, box_a, vb)):
         for guess in ((0.0, 0.0), (-100.0, 50.0)):  # from still, or from a wrong velocity
@@ -1046,15 +1048,8 @@ def test_split_by_motion_finds_two_targets_moving_apart_in_one_blob_and_none_in_
     a, b = _textured_patch(rng, 40, 40), _textured_patch(rng, 44, 36)
     dt_s, va, vb = 0.04, (150.0, 0.0), (0.0, -100.0)
 
-    def frame(t_s: float, patches: list) -> np.ndarray:
-        image = np.zeros((200, 260), np.float32)
-        for patch, (x, y), (vx, vy) in patches:
-            x0, y0 = int(round(x + vx * t_s)), int(round(y + vy * t_s))
-            image[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]] = patch
-        return image
-
     pair = [(a, (60, 80), va), (b, (100, 78), vb)]  # side by side, touching: one blob
-    earlier, now = frame(-dt_s, pair), frame(0.0, pair)
+    earlier, now = _frame(-dt_s, pair), _frame(0.0, pair)
     parts = split_by_motion(earlier, now, (60, 78, 76, 44), dt_s, MotionParams())
     assert parts is not None
     truth = np.array([[60, 80, 40, 40], [100, 78, 36, 44]], np.float32)
@@ -1062,7 +1057,7 @@ def test_split_by_motion_finds_two_targets_moving_apart_in_one_blob_and_none_in_
     assert overlap.max(axis=1).min() > 0.55 and set(overlap.argmax(axis=1)) == {0, 1}
 
     one = [(a, (60, 80), va)]
-    assert split_by_motion(frame(-dt_s, one), frame(0.0, one), (60, 80, 40, 40), dt_s, MotionParams()) is None
+    assert split_by_motion(_frame(-dt_s, one), _frame(0.0, one), (60, 80, 40, 40), dt_s, MotionParams()) is None
 
 
 def test_the_flow_compares_with_an_image_kept_at_most_a_keep_interval_past_its_lag() -> None:
