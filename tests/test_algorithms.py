@@ -1027,7 +1027,7 @@ def test_tracks_sharing_a_blob_learn_their_velocities_from_their_own_parts_of_it
     assert meet(None)[1].vel[0] < 0
 
 
-def test_part_velocity_follows_each_targets_own_part_of_a_blob_and_nothing_plain_or_new() -> None:
+def test_part_velocity_follows_each_targets_own_part_of_a_blob_and_nothing_plain_new_or_a_sliver() -> None:
     rng = np.random.default_rng(5)
     a, b = _textured_patch(rng, 40, 40), _textured_patch(rng, 44, 36)
     dt_s, va, vb = 0.06, (100.0, 0.0), (-50.0, 100.0)  # 6 and 3 px, 6 px over dt: whole pixels
@@ -1040,6 +1040,8 @@ def test_part_velocity_follows_each_targets_own_part_of_a_blob_and_nothing_plain
             assert part_velocity(earlier, now, box, [other], guess, dt_s, ShiftParams()) == pytest.approx(truth, abs=8)
     plain = np.zeros_like(now)
     assert part_velocity(plain, plain, box_a, [], (0.0, 0.0), dt_s, ShiftParams()) is None
+    sliver = [(60, 80, 30, 40)]  # the others' boxes leave it a quarter of its own: their targets' edges as much
+    assert part_velocity(earlier, now, box_a, sliver, (0.0, 0.0), dt_s, ShiftParams()) is None
     assert part_velocity(plain, now, box_a, [box_b], (0.0, 0.0), dt_s, ShiftParams()) is None  # nothing before
 
 
