@@ -202,7 +202,7 @@ def _halves(image, earlier, x0, y0, x1, y1, rects):  # noqa: ANN001, ANN202 - nu
     across = np.empty((h, w), np.float32)
     for n, im in enumerate((image, earlier)):
         half = out[n]
-        for y in range(h):
+        for y in range(h):  # `_shrink` fused with the clip: on a clipped copy it took 1.6 times as long
             top, bottom = im[y0 + 2 * y, x0:x1], im[y0 + 2 * y + 1, x0:x1]
             for x in range(w):
                 half[y, x] = 0.25 * (min(top[2 * x], 3.0) + min(top[2 * x + 1], 3.0) + min(bottom[2 * x], 3.0)
