@@ -275,6 +275,20 @@ def test_a_target_that_left_beside_another_is_known_back_by_its_size_over_second
     assert [t.ident for t in tracks if t.state == TRACKED] == [1]
 
 
+def test_a_target_back_seconds_after_it_left_takes_its_id_back_and_not_once_it_is_forgotten() -> None:
+    """A target that left the view and comes back some seconds later (out of a door and in again, from behind a
+    wall) is known by its size for `forget_after_us`: 3 s later it takes its id back, 5 s later it is a new one."""
+    none = np.zeros((0, 4), np.float32)
+    for gap_us, ident in ((3_000_000, 1), (5_000_000, 2)):
+        mot = MultiObjectTracker(width=346, height=260)
+        _follow(mot, 0, [300, 100, 30, 20], [5, 0, 0, 0], 10)  # out through the right border
+        assert [t.state for t in mot.update(100_000, none)] == [LOST]
+        for t_us in range(200_000, 100_000 + gap_us, 100_000):  # nothing in view meanwhile
+            mot.update(t_us, none)
+        tracks = _follow(mot, 100_000 + gap_us, [340, 60, 6, 20], [-2, 0, 2, 0], 5)  # back, as tall
+        assert [t.ident for t in tracks if t.state == TRACKED] == [ident]
+
+
 def test_a_target_whose_track_was_merged_as_two_left_together_takes_its_id_back_at_a_border() -> None:
     """Two targets moving side by side form one blob. Where their tracks are taken as one target (here: folded at
     any overlap; by default only at IoU 0.5 or more) the smaller one's track is folded into the other's; when the
