@@ -410,14 +410,14 @@ class MultiObjectTracker:
                 members = moving
             boxes_in, own, fills = self._layout_inputs([(self.tracks[ti], pred[ti]) for ti in members])
             placed = layout(boxes_in, own, fills) if layout is not None and members else boxes_in
-            for ti, box in zip(members, placed.tolist(), strict=True):
-                tr = self.tracks[ti]
+            placed_boxes: list[Box] = [(b[0], b[1], b[2], b[3]) for b in placed.tolist()]
+            for ti, box in zip(members, placed_boxes, strict=True):
                 if ti in hidden:  # placed, but not seen
-                    self._coast(tr, (box[0], box[1], box[2], box[3]), t_us)
+                    self._coast(self.tracks[ti], box, t_us)
                 else:
-                    self._place(tr, (box[0], box[1], box[2], box[3]), t_us)
+                    self._place(self.tracks[ti], box, t_us)
             if parts is not None:
-                self._learn_parts(t_us, members, placed.tolist(), hidden, parts)
+                self._learn_parts(t_us, members, placed_boxes, hidden, parts)
         observed = [pred[ti] for ti in sorted(set(pieces) | in_shared)]
         for ti, tr in enumerate(self.tracks):
             if ti not in pieces and ti not in in_shared and ti not in whole and tr.state != _GONE:
@@ -599,13 +599,12 @@ class MultiObjectTracker:
                 used_d.add(di)
         return out
 
-    def _learn_parts(self, t_us: int, members: list[int], placed: list[list[float]], hidden: set[int],
+    def _learn_parts(self, t_us: int, members: list[int], boxes: list[Box], hidden: set[int],
                      parts: PartVelocity) -> None:
-        """Tracks placed in a shared blob (`members`, at their `placed` boxes) learn their velocities from the
+        """Tracks placed in a shared blob (`members`, at their `boxes`) learn their velocities from the
         motion of their own parts of it, every `part_every_us`: the layout corrects a wrong prediction little, so
         a target that turned or started in the blob was followed on its old velocity. Not one hidden there."""
         p = self.params
-        boxes = [(b[0], b[1], b[2], b[3]) for b in placed]
         for k, ti in enumerate(members):
             tr = self.tracks[ti]
             if ti in hidden or tr.state != TRACKED or t_us - tr.parted_us < p.part_every_us:
