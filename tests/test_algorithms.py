@@ -197,6 +197,32 @@ def test_a_target_that_stops_at_the_border_in_full_view_is_held_and_one_that_lea
     assert [(t.ident, t.state) for t in tracks] == [(1, LOST)]
 
 
+def test_a_target_that_stops_partly_out_of_view_is_held_and_one_going_out_is_not() -> None:
+    """A target that stops a fifth out of the image is still there, held at the border; one that goes out
+    fast, fewer of its events left as less of it is in view (its leading edge gone first), is not taken for
+    one that stopped there: it is lost once gone, not held at the border."""
+    none = np.zeros((0, 4), np.float32)
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(40):  # moving left at 2 px an update, until a fifth of it is out of the image
+        x = max(72 - 2 * i, -8)
+        mot.update(i * 10_000, np.array([[max(x, 0), 100, 40 + min(x, 0), 40]], np.float32),
+                   fresh=lambda b: np.full(len(b), 1000.0))
+    for i in range(40, 43):  # stopped there: only its fading image, then nothing
+        mot.update(i * 10_000, np.array([[0, 100, 32, 40]], np.float32), fresh=lambda b: np.full(len(b), 5.0))
+    for t in range(430_000, 1_300_000, 10_000):
+        tracks = mot.update(t, none)
+    assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)] and tracks[0].box[0] == pytest.approx(0, abs=1)
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(30):  # moving left at 4 px an update, its whole box in view
+        mot.update(i * 10_000, np.array([[130 - 4 * i, 100, 40, 40]], np.float32),
+                   fresh=lambda b: np.full(len(b), 1000.0))
+    # then 7/10 of it in view, firing a quarter of its usual events, and gone
+    mot.update(300_000, np.array([[0, 100, 28, 40]], np.float32), fresh=lambda b: np.full(len(b), 250.0))
+    for t in range(310_000, 400_000, 10_000):
+        tracks = mot.update(t, none)
+    assert [(t.ident, t.state) for t in tracks] == [(1, LOST)]
+
+
 def test_association_grows_a_track_left_on_a_piece_of_a_bigger_target() -> None:
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [100, 100, 20, 20], [0, 0, 0, 0], 40)  # a piece of a target, tracked

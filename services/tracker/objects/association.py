@@ -12,7 +12,7 @@ knew it was lost. Here:
   and moves with the edge still seen (not the box's centre, which jumps as the size comes back);
   a target hidden behind others (their boxes cover most of it) coasts at its velocity, or in a
   blob it shares with the nearer one is still placed but counts as unseen; all stay `TRACKED` for
-  `hold_us`; one that stops at a border with its whole size in view is held too, but one that
+  `hold_us`; one that stops at a border with most of it in view is held too, but one that
   leaves the image is lost, and a target coming in at that border with its size (on the axis
   the border does not cut, measured again as more of it comes in) takes its id back, wherever
   along the border it comes in, unless two lost tracks fit about as well (seed 002 re-identifies a
@@ -147,6 +147,12 @@ class AssociationParams:
     # detection of its own near, is folded too, and takes its id back by its size when it comes out
     young_inside: float = 0.9
     stop_ratio: float = 0.3  # a detection with fewer new events than this share of its track's usual is fading
+    # a target that stops at a border is held if its box there shows this share of its usual size on the axis the
+    # border cuts (one that leaves is held, if at all, with a sliver of it in view). At 0.9, one that stopped a
+    # fifth out of view was let go as gone. On four sets of 60 dev seeds precision@20 0.9489 -> 0.9510 (+0.001 to
+    # +0.003 on each), on three fresh sets 0.9487 -> 0.9518; id switches per object-minute 1.72 -> 1.73 and
+    # 2.40 -> 2.40, false boxes 0.138 -> 0.142 and 0.166 -> 0.169 a second
+    held_share: float = 0.6
     rate_gain: float = 0.2  # weight of a new count in a track's usual count of new events
     rate_decay: float = 0.98  # per held update: a target that goes on slowly is followed again within ~0.5 s
     recent_updates: float = 3.0  # updates an event's pixel stays recent (tau 30 ms to weight 0.35 at 10 ms a step)
@@ -386,7 +392,7 @@ class MultiObjectTracker:
             tr = self.tracks[ti]
             if fresh is not None:
                 new_events = float(sum(new_in_dets[di] for di in members))
-                if self._stopped(tr, new_events):
+                if self._stopped(tr, new_events, self._in_view(tr, union([dets[di] for di in members]))):
                     self._hold(tr, t_us)
                     continue
                 self._learn_rate(tr, new_events)
@@ -644,6 +650,14 @@ class MultiObjectTracker:
         and the `share` of it they leave is small."""
         return k != biggest and share < self.params.hidden_share
 
+    def _in_view(self, tr: Track, box: Box) -> float:
+        """The share of its target that a track's detection shows: under 1 where a border cuts it. Fewer of its
+        pixels fire there, so a target leaving through the border is not taken for one that stopped at it (and
+        held at the border, where it took the next target to come in)."""
+        if not self._sides(box):
+            return 1.0
+        return min(1.0, _area(box) / max(tr.usual_size(0) * tr.usual_size(1), 1.0))
+
     def _stopped(self, tr: Track, new_events: float, share: float = 1.0) -> bool:
         """Whether its detection (or the `share` of its box no other track covers) has far fewer new
         events than usual: the target stopped and what is seen there is its fading image."""
@@ -791,11 +805,11 @@ class MultiObjectTracker:
         return TENTATIVE if any(o.state == LOST for o in self.tracks) else tr.state
 
     def _stopped_in_view(self, tr: Track) -> bool:
-        """Whether a track at a border is a target that stopped there, held with its whole size in view
-        (not one that left: that shrinks as it goes, and is held, if at all, with a sliver of it left)."""
+        """Whether a track at a border is a target that stopped there, held with most of it in view
+        (`held_share`; not one that left: that shrinks as it goes, and is held, if at all, with a sliver of it left)."""
         sides = self._sides(tr.box)
         return tr.held and all(
-            not sides & cut or tr.box[2 + axis] >= WHOLE * tr.usual_size(axis)
+            not sides & cut or tr.box[2 + axis] >= self.params.held_share * tr.usual_size(axis)
             for axis, cut in ((0, CUT_X), (1, CUT_Y)))
 
     def _coast(self, tr: Track, box: Box, t_us: int) -> None:
