@@ -390,13 +390,13 @@ class MultiObjectTracker:
         new_in_dets = fresh(np.asarray(dets, np.float32)) if fresh is not None and dets else []
         for ti, members in pieces.items():
             tr = self.tracks[ti]
+            box, anchor = union([dets[di] for di in members]), (0.5, 0.5)
             if fresh is not None:
                 new_events = float(sum(new_in_dets[di] for di in members))
-                if self._stopped(tr, new_events, self._in_view(tr, union([dets[di] for di in members]))):
+                if self._stopped(tr, new_events, self._in_view(tr, box)):
                     self._hold(tr, t_us)
                     continue
                 self._learn_rate(tr, new_events)
-            box, anchor = union([dets[di] for di in members]), (0.5, 0.5)
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
                 box, anchor = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], self._sides(box))
             self._correct(tr, box, t_us, anchor)
