@@ -173,19 +173,31 @@ def test_association_holds_a_target_whose_detection_only_fades() -> None:
     assert tracks[0].box[0] == pytest.approx(138, abs=4) and tracks[0].vel[0] > 100
 
 
+def _stopped_at_the_left_border(stop_x: int) -> list:
+    """The tracks 0.9 s after a 40 px square target moving left at 2 px an update (1000 new events each)
+    stopped with its left edge at `stop_x` (negative: that much of it out of the image), leaving only its
+    fading image, then nothing."""
+    none = np.zeros((0, 4), np.float32)
+    mot = MultiObjectTracker(width=346, height=260)
+    moving = (78 - stop_x) // 2 + 1
+    for i in range(moving):
+        x = 78 - 2 * i
+        mot.update(i * 10_000, np.array([[max(x, 0), 100, 40 + min(x, 0), 40]], np.float32),
+                   fresh=lambda b: np.full(len(b), 1000.0))
+    seen = [max(stop_x, 0), 100, 40 + min(stop_x, 0), 40]
+    for i in range(moving, moving + 3):
+        mot.update(i * 10_000, np.array([seen], np.float32), fresh=lambda b: np.full(len(b), 5.0))
+    for t in range((moving + 3) * 10_000, (moving + 90) * 10_000, 10_000):
+        tracks = mot.update(t, none)
+    return tracks
+
+
 def test_a_target_that_stops_at_the_border_in_full_view_is_held_and_one_that_leaves_is_not() -> None:
     """A target that stops touching a border is still there; one that goes out shrinks to a sliver
     (its events falling with it) and is lost, to be found again by its size if it comes back."""
-    none = np.zeros((0, 4), np.float32)
-    mot = MultiObjectTracker(width=346, height=260)
-    for i in range(40):  # moving left, 1000 new events per update, until it touches the left border
-        mot.update(i * 10_000, np.array([[max(78 - 2 * i, 0), 100, 40, 40]], np.float32),
-                   fresh=lambda b: np.full(len(b), 1000.0))
-    for i in range(40, 43):  # stopped there: only its fading image, then nothing
-        mot.update(i * 10_000, np.array([[0, 100, 40, 40]], np.float32), fresh=lambda b: np.full(len(b), 5.0))
-    for t in range(430_000, 1_300_000, 10_000):
-        tracks = mot.update(t, none)
+    tracks = _stopped_at_the_left_border(0)
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)] and tracks[0].box[0] == pytest.approx(0, abs=1)
+    none = np.zeros((0, 4), np.float32)
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(50):  # left through the left border: the box and its events shrink together
         x, w = 160 - 4 * i, 40
@@ -201,17 +213,9 @@ def test_a_target_that_stops_partly_out_of_view_is_held_and_one_going_out_is_not
     """A target that stops a fifth out of the image is still there, held at the border; one that goes out
     fast, fewer of its events left as less of it is in view (its leading edge gone first), is not taken for
     one that stopped there: it is lost once gone, not held at the border."""
-    none = np.zeros((0, 4), np.float32)
-    mot = MultiObjectTracker(width=346, height=260)
-    for i in range(40):  # moving left at 2 px an update, until a fifth of it is out of the image
-        x = max(72 - 2 * i, -8)
-        mot.update(i * 10_000, np.array([[max(x, 0), 100, 40 + min(x, 0), 40]], np.float32),
-                   fresh=lambda b: np.full(len(b), 1000.0))
-    for i in range(40, 43):  # stopped there: only its fading image, then nothing
-        mot.update(i * 10_000, np.array([[0, 100, 32, 40]], np.float32), fresh=lambda b: np.full(len(b), 5.0))
-    for t in range(430_000, 1_300_000, 10_000):
-        tracks = mot.update(t, none)
+    tracks = _stopped_at_the_left_border(-8)  # a fifth of it out of the image
     assert [(t.ident, t.state) for t in tracks] == [(1, TRACKED)] and tracks[0].box[0] == pytest.approx(0, abs=1)
+    none = np.zeros((0, 4), np.float32)
     mot = MultiObjectTracker(width=346, height=260)
     for i in range(30):  # moving left at 4 px an update, its whole box in view
         mot.update(i * 10_000, np.array([[130 - 4 * i, 100, 40, 40]], np.float32),
