@@ -279,7 +279,9 @@ def test_a_command_with_long_work_is_answered_when_done_while_the_service_goes_o
 
 def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: str, rig: str, tmp_path) -> None:  # noqa: ANN001
     """camera (sim:6dof) -> mapper --poses truth: keyframe points are published, the whole map is
-    answered, `save` writes a PLY that `etam eval map` could read, `reset` empties it."""
+    answered, `save` writes a PLY that `etam eval map` could read, `reset` empties it. The first keyframe
+    holds some 90 points (the camera has barely moved); on a loaded machine it had 46 (the simulator lags
+    and its events come fewer), so the test waits for the first keyframe with more than 50."""
     from services.mapper.ply import read_map
     from services.messages import PointCloud
 
@@ -288,10 +290,11 @@ def test_mapper_service_maps_the_simulator_and_answers_saves_and_resets(router: 
             client_session(router) as s:
         points = Collector(s, f"etam/{rig}/mapper/map/points")
         depths = Collector(s, f"etam/{rig}/mapper/map/depth")
-        first = wait_for(lambda: points.of(PointCloud), 90, "a keyframe's points")[0]
+        first = wait_for(lambda: [m for m in points.of(PointCloud) if len(m.points) > 50], 90,
+                         "a keyframe with more than 50 points")[0]
         depth = image_to_array(wait_for(lambda: depths.of(Image), 10, "a keyframe's depth map")[0])
         assert depth.shape == (260, 346) and 0.3 < float(np.nanmedian(depth)) < 8
-        assert len(first.points) > 50 and first.keyframe is not None
+        assert first.keyframe is not None
         assert np.all(np.isfinite(first.points)) and 0.3 < float(np.median(first.points[:, 2])) < 8
         whole = _query(s, f"etam/{rig}/mapper/map/all")
         assert isinstance(whole, PointCloud) and len(whole.points) >= len(first.points)
