@@ -391,14 +391,15 @@ class MultiObjectTracker:
         for ti, members in pieces.items():
             tr = self.tracks[ti]
             box, anchor = union([dets[di] for di in members]), (0.5, 0.5)
+            sides = self._sides(box)
             if fresh is not None:
                 new_events = float(sum(new_in_dets[di] for di in members))
-                if self._stopped(tr, new_events, self._in_view(tr, box)):
+                if self._stopped(tr, new_events, self._in_view(tr, box, sides)):
                     self._hold(tr, t_us)
                     continue
                 self._learn_rate(tr, new_events)
             if tr.state == TRACKED:  # a target going behind (or coming out from behind) another keeps its size
-                box, anchor = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], self._sides(box))
+                box, anchor = _behind(box, tr.usual_size, [a for k, a in confirmed if k != ti], sides)
             self._correct(tr, box, t_us, anchor)
         hidden: set[int] = set()
         for members in shared.values():
@@ -650,11 +651,12 @@ class MultiObjectTracker:
         and the `share` of it they leave is small."""
         return k != biggest and share < self.params.hidden_share
 
-    def _in_view(self, tr: Track, box: Box) -> float:
-        """The share of its target that a track's detection shows: under 1 where a border cuts it. Fewer of its
-        pixels fire there, so a target leaving through the border is not taken for one that stopped at it (and
-        held at the border, where it took the next target to come in)."""
-        if not self._sides(box):
+    @staticmethod
+    def _in_view(tr: Track, box: Box, sides: int) -> float:
+        """The share of its target that a track's detection (touching the borders `sides`) shows: under 1 where
+        a border cuts it. Fewer of its pixels fire there, so a target leaving through the border is not taken for
+        one that stopped at it (and held at the border, where it took the next target to come in)."""
+        if not sides:
             return 1.0
         return min(1.0, _area(box) / max(tr.usual_size(0) * tr.usual_size(1), 1.0))
 
