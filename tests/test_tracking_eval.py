@@ -224,8 +224,9 @@ def test_bench_tracking_scores_every_seed_and_their_mean() -> None:
 
     rows = tracking.run(quick=True)
     ceilings = ["association on truth boxes", "association on merged truth boxes",
-                "default, blobs placed on truth boxes"]
-    assert [r["seed"] for r in rows] == [11, 12] + ["mean"] * (len(METHODS) + 4)
+                "default, blobs placed on truth boxes, hidden ones too",
+                "default, blobs placed on the truth boxes of targets in view"]
+    assert [r["seed"] for r in rows] == [11, 12] + ["mean"] * (len(METHODS) + 5)
     assert [r["method"] for r in rows[2:]] == [*METHODS, *ceilings, "dv MeanShiftTracker"]
     mean = rows[2]
     assert mean["op50"] == pytest.approx((rows[0]["op50"] + rows[1]["op50"]) / 2)
