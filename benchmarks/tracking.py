@@ -31,6 +31,7 @@ from __future__ import annotations
 import datetime
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -56,12 +57,7 @@ HELD_OUT_SEEDS = tuple(range(71, 111))  # never looked at while tuning: keep the
 def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> list[dict]:
     seeds = seeds[:2] if quick else seeds
     duration_s = 5.0 if quick else 20.0
-    ceilings = {"association on truth boxes": False, "association on merged truth boxes": True}  # merged?
-    # placed on the truth of every object in the image, or only of those scored (in view, not hidden): a layout
-    # sees no hidden target, so the second bounds what a better layout could reach; the first adds where hidden ones are
-    placements = {"default, blobs placed on truth boxes, hidden ones too": True,
-                  "default, blobs placed on the truth boxes of targets in view": False}
-    scores: dict[str, list[dict]] = {m: [] for m in (*METHODS, *ceilings, *placements, "dv MeanShiftTracker")}
+    scores: dict[str, list[dict]] = {m: [] for m in (*METHODS, *CEILINGS, "dv MeanShiftTracker")}
     rows = []
     with tempfile.TemporaryDirectory(prefix="etam-bench-") as tmp:
         for seed in seeds:
@@ -74,15 +70,9 @@ def run(quick: bool = False, seeds: tuple[int, ...] = (11, 12, 13, 14, 15)) -> l
             with open_recording(h5) as rec:
                 truth = rec.truth.boxes[:, :6].astype(np.float64)
                 in_image = np.concatenate([truth, rec.truth.ignore[:, :6].astype(np.float64)])
-            for name, merged in ceilings.items():
-                csv = Path(tmp) / f"truth{int(merged)}_{seed}.csv"
-                track(h5, csv, progress=False,
-                      make_tracker=lambda w, h, _, t=truth, m=merged: TruthBoxes(w, h, t, m))
-                scores[name].append(eval_tracking(csv, h5))
-            for name, hidden_too in placements.items():
-                csv = Path(tmp) / f"placed{int(hidden_too)}_{seed}.csv"
-                track(h5, csv, progress=False,
-                      make_tracker=lambda w, h, _, t=in_image if hidden_too else truth: TruthPlacement(w, h, t))
+            for k, (name, make) in enumerate(CEILINGS.items()):
+                csv = Path(tmp) / f"ceiling{k}_{seed}.csv"
+                track(h5, csv, progress=False, make_tracker=lambda w, h, _, m=make, t=truth, i=in_image: m(w, h, t, i))
                 scores[name].append(eval_tracking(csv, h5))
             csv = Path(tmp) / f"dv{seed}.csv"
             _dv_track(h5, csv)
@@ -176,6 +166,17 @@ class TruthPlacement(_WithTruth):
                 if overlap[i, j] > 0.1:
                     placed[i] = truth[j]
         return placed
+
+
+# name -> the tracker, from the sensor size, the truth boxes in view and those with every object in the image too.
+# Blobs placed on the truth of the targets in view bound what a better layout could reach (no layout sees a hidden
+# target); placed on every object's, they add where the hidden ones are
+CEILINGS: dict[str, Callable[[int, int, np.ndarray, np.ndarray], ObjectTracker]] = {
+    "association on truth boxes": lambda w, h, truth, _: TruthBoxes(w, h, truth, merged=False),
+    "association on merged truth boxes": lambda w, h, truth, _: TruthBoxes(w, h, truth, merged=True),
+    "default, blobs placed on truth boxes, hidden ones too": lambda w, h, _, in_image: TruthPlacement(w, h, in_image),
+    "default, blobs placed on the truth boxes of targets in view": lambda w, h, truth, _: TruthPlacement(w, h, truth),
+}
 
 
 def _merge_overlapping(boxes: np.ndarray) -> np.ndarray:
