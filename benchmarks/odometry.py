@@ -32,15 +32,11 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
-import cv2
 import numpy as np
 import zenoh
 from scipy.spatial.transform import Rotation
-from threadpoolctl import threadpool_limits
 
 from benchmarks import free_port, join
 from benchmarks.mapping import per_seed
@@ -51,6 +47,7 @@ from services.config import ZenohSettings
 from services.mapper.keyframes import KeyframeMapper
 from services.mapper.trajectory import Trajectory
 from services.messages import Pose, decode
+from services.threads import one_thread
 from services.tracker.ego.loop import LoopParams
 from services.tracker.ego.rotation import RotationParams, RotationTracker
 from services.tracker.ego.sixdof import SixDofParams, SixDofTracker
@@ -186,7 +183,7 @@ def speed_6dof(h5: Path) -> dict:
         tracker.add_points(p)
     (R0,), (p0,) = truth.at(start)
     tracker.start(start, R0, p0)
-    with _one_thread():
+    with one_thread():
         cpu, updates = 0.0, 0
         for packet in _packets(events):
             c0 = time.process_time()
@@ -208,7 +205,7 @@ def speed(h5: Path, seconds: float) -> list[dict]:
     packets = _packets(events)
     stream_rate = len(events) / ((events["t"][-1] - events["t"][0]) * 1e-6)
     rows = []
-    with _one_thread():
+    with one_thread():
         for panorama in (True, False):
             tracker = RotationTracker(K, w, h, RotationParams(panorama=panorama))
             wall = cpu = 0.0
@@ -230,16 +227,3 @@ def _packets(events: np.ndarray) -> list[np.ndarray]:
     """Events cut into packets of `PACKET_US`, as the live service receives them."""
     cuts = np.searchsorted(events["t"], np.arange(events["t"][0], events["t"][-1], PACKET_US))
     return np.split(events, cuts[1:])
-
-
-@contextmanager
-def _one_thread() -> Iterator[None]:
-    """OpenCV and the BLAS pools held to one thread, as the live service holds them."""
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    blas = threadpool_limits(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(threads)
-        blas.restore_original_limits()

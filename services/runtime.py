@@ -27,12 +27,12 @@ from typing import Any, ClassVar, Literal, TypeVar
 
 import psutil
 import zenoh
-from threadpoolctl import threadpool_limits
 
 from services import keys
 from services.config import ZenohSettings
 from services.messages import CameraInfo, Command, Message, MessageError, Reply, Stats, decode
 from services.stats import KeyCounter
+from services.threads import one_thread
 
 log = logging.getLogger(__name__)
 
@@ -387,10 +387,9 @@ class Service:
 
     # ---------------------------------------------------------------------------- runtime --
     def run(self) -> int:
-        """Run the service until it ends or is signalled; the process exit code. Its BLAS pools (numpy's,
-        scipy's, OpenCV's) are held to one thread: the per-event work is numba and OpenCV, and after each
-        small BLAS call the pools' threads spin, which took two thirds of the ego tracker's CPU on 2 cores."""
-        with threadpool_limits(1):
+        """Run the service until it ends or is signalled; the process exit code. Its thread pools are
+        held to one thread (see `services.threads`)."""
+        with one_thread():
             return asyncio.run(self._run())
 
     async def _run(self) -> int:

@@ -247,9 +247,11 @@ class Slow(Service):
             if cmd.op == "broken":
                 raise RuntimeError("the work failed")
             return Reply(ok=True, result={"ticks_meanwhile": self.ticks - before})
-        if cmd.op == "blas":  # the BLAS pools' threads (held to one: idle ones spin and take cores)
+        if cmd.op == "threads":  # the BLAS pools' and OpenCV's threads (held to one: idle ones spin and take cores)
+            import cv2
             from threadpoolctl import threadpool_info
-            return Reply(ok=True, result={"threads": max(i["num_threads"] for i in threadpool_info())})
+            return Reply(ok=True, result={"blas": max(i["num_threads"] for i in threadpool_info()),
+                                          "opencv": cv2.getNumThreads()})
         return work() if cmd.op in ("slow", "broken") else None
 
 raise SystemExit(Slow(ServiceOptions(sys.argv[2], "slow", config.resolve(connect=[sys.argv[1]]))).run())
@@ -271,7 +273,7 @@ def test_a_command_with_long_work_is_answered_when_done_while_the_service_goes_o
             broken = _query(s, cmd, Command(op="broken"), timeout=10)
             assert not broken.ok and "the work failed" in broken.error
             assert _query(s, cmd, Command(op="ping")).ok and proc.poll() is None
-            assert _query(s, cmd, Command(op="blas")).result["threads"] == 1
+            assert _query(s, cmd, Command(op="threads")).result == {"blas": 1, "opencv": 1}
     finally:
         proc.terminate()
         proc.wait(10)
