@@ -12,14 +12,13 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import cv2
 from threadpoolctl import threadpool_limits
 
 
 @contextmanager
 def one_thread() -> Iterator[None]:
     """numpy's and scipy's BLAS pools and OpenCV's held to one thread inside, as they were after."""
-    import cv2  # only the processes that use it pay its import
-
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
