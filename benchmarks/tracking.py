@@ -159,7 +159,8 @@ class TruthPlacement(_WithTruth):
         self.t_us = t_us  # the layout of this update places on the truth of this time
         return super()._detect(image, t_us)
 
-    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray) -> np.ndarray:
+    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray,
+                fixed: np.ndarray | None = None) -> np.ndarray:
         placed = np.asarray(boxes, np.float32).reshape(-1, 4).copy()
         truth = self._truth_at(self.t_us)
         if len(truth) and len(placed):

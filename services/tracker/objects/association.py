@@ -73,8 +73,9 @@ _GONE = -1  # merged or expired during an update; removed before it returns
 
 Box = tuple[float, float, float, float]  # x, y, w, h
 # predicted boxes (K x 4), the sizes the tracks measured on their own (K x 2), the share of their pixels the
-# targets usually fire (K) -> the boxes placed on the events
-Layout = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+# targets usually fire (K), the boxes of the other tracks (F x 4: their pixels are theirs) -> the boxes placed on
+# the events
+Layout = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 # a detection, the boxes placed in it -> the box of its recent pixels they leave, their count, the detection's count
 Leftover = Callable[[Box, np.ndarray], tuple[np.ndarray, int, int]]
 # boxes (N x 4) -> the events in each since the last update
@@ -416,7 +417,8 @@ class MultiObjectTracker:
                         moving.append(ti)
                 members = moving
             boxes_in, own, fills = self._layout_inputs([(self.tracks[ti], pred[ti]) for ti in members])
-            placed = layout(boxes_in, own, fills) if layout is not None and members else boxes_in
+            placed = (layout(boxes_in, own, fills, self._others(members, pred, t_us))
+                      if layout is not None and members else boxes_in)
             placed_boxes: list[Box] = [(b[0], b[1], b[2], b[3]) for b in placed.tolist()]
             for ti, box in zip(members, placed_boxes, strict=True):
                 if ti in hidden:  # placed, but not seen
@@ -482,7 +484,8 @@ class MultiObjectTracker:
             tr, a, inter = inside[0]
             if self._sides(a) or inter < 0.5 * _area(a) or _area(det) < p.split_area * _area(a):
                 continue
-            placed = layout(*self._layout_inputs([(tr, a)]))
+            placed = layout(*self._layout_inputs([(tr, a)]), np.asarray([b for o, b in confirmed if o is not tr],
+                                                                        np.float32).reshape(-1, 4))
             box, n, total = leftover(det, placed)
             own, rest = tuple(placed[0].tolist()), tuple(box.tolist())
             if n and n >= p.split_share * total and _overlap(rest, own) < p.split_cover * _area(own):
@@ -688,6 +691,12 @@ class MultiObjectTracker:
         rates = np.asarray([tr.rate for tr, _ in placing], np.float64)
         fills = np.minimum(self.params.recent_updates * rates / np.maximum(sizes.prod(axis=1), 1.0), 1.0)
         return boxes, sizes, np.where(rates > 0, fills, 1.0)
+
+    def _others(self, members: list[int], pred: list[Box], t_us: int) -> np.ndarray:
+        """The boxes (F x 4) of the live tracks not among `members` (indices into the tracks, whose predictions are
+        `pred`): where placed in this update already, else where predicted."""
+        return np.asarray([tr.box if tr.t_us == t_us else pred[ti] for ti, tr in enumerate(self.tracks)
+                           if ti not in members and tr.state in (TENTATIVE, TRACKED)], np.float32).reshape(-1, 4)
 
     def _stopped_beside(self, tr: Track, k: int, boxes: list[Box], new_in: list[float],
                         alone: tuple[list[Box], float], fresh: Counts) -> bool:

@@ -133,7 +133,7 @@ class ObjectTracker:
                 past, image, box, others, guess, dt_s, self.params.shift)
         tracks = self.association.update(
             t_us, boxes, fresh=self.fresh.count,
-            layout=lambda preds, sizes, fills: self._layout(image, preds, sizes, fills),
+            layout=lambda preds, sizes, fills, fixed: self._layout(image, preds, sizes, fills, fixed),
             leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions,
             parts=parts)
         self.fresh.reset()
@@ -160,9 +160,11 @@ class ObjectTracker:
             self._past.append((t_us, image.copy()))
         return earlier
 
-    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray) -> np.ndarray:
-        """Where the tracks sharing one blob are (their predicted boxes, own sizes and usual fills in, boxes out)."""
-        return fit_layout(image, boxes, self.params.layout, sizes, fills)
+    def _layout(self, image: np.ndarray, boxes: np.ndarray, sizes: np.ndarray, fills: np.ndarray,
+                fixed: np.ndarray | None = None) -> np.ndarray:
+        """Where the tracks sharing one blob are (their predicted boxes, own sizes and usual fills, and the other
+        tracks' boxes in; boxes out)."""
+        return fit_layout(image, boxes, self.params.layout, sizes, fills, fixed)
 
     def _accept_sampled(self) -> None:
         """This update's events, thinned to key events (each weighted by the events of its cell)
