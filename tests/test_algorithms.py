@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -22,6 +23,7 @@ from services.tracker.objects.association import (
     Track,
     iou,
 )
+from services.tracker.objects.appearance import AppearanceParams, find, template
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
 from services.tracker.objects.motion import MotionParams, ShiftParams, part_velocity, split_by_motion
 
@@ -1081,6 +1083,69 @@ def test_tracks_sharing_a_blob_learn_their_velocities_from_their_own_parts_of_it
     assert tracks[1].vel[0] == pytest.approx(100, abs=25) and tracks[0].vel[0] == pytest.approx(100, abs=25)
     assert seen and all(len(others) == 1 for _, others in seen)  # each measured beside the other's box
     assert meet(None)[1].vel[0] < 0
+
+
+def test_find_puts_a_template_where_its_target_moved_beside_another_and_nowhere_plain_or_past_the_image() -> None:
+    """A small target (its patch correlated at half size) and a big one (at a quarter) move a few pixels, the big
+    one partly over the small one: each one's template, taken where it was, is found where it went, to a pixel.
+    Their patterns are smooth, as a textured target's events are (not noise from pixel to pixel)."""
+    rng = np.random.default_rng(7)
+
+    def smooth(h: int, w: int) -> np.ndarray:
+        coarse = rng.random((h // 4 + 1, w // 4 + 1)).astype(np.float32)
+        return 2 * cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC).clip(0, 1)
+
+    small, big = smooth(30, 34), smooth(80, 70)
+    before = [(small, (60, 80), (0.0, 0.0)), (big, (92, 60), (0.0, 0.0))]
+    moved = [(small, (60, 80), (300.0, -200.0)), (big, (92, 60), (-400.0, 500.0))]  # over 10 ms: 3, -2 and -4, 5
+    then, now = _frame(0.0, before), _frame(0.01, moved)  # the big one hides a quarter of the small one then
+    for box, truth in (((60.0, 80.0, 34.0, 30.0), (3, -2)), ((92.0, 60.0, 70.0, 80.0), (-4, 5))):
+        patch = template(then, box)
+        assert patch is not None
+        assert find(now, patch, box, AppearanceParams()) == pytest.approx(truth, abs=1.0)
+    plain = np.zeros_like(now)
+    assert find(plain, template(then, (60.0, 80.0, 34.0, 30.0)), (60.0, 80.0, 34.0, 30.0), AppearanceParams()) is None
+    assert find(now, np.zeros((30, 34), np.float32), (60.0, 80.0, 34.0, 30.0), AppearanceParams()) is None
+    assert template(then, (-4.0, 80.0, 34.0, 30.0)) is None  # cut by the border: not its whole pattern
+    edge = (2.0, 80.0, 34.0, 30.0)  # the search would reach past the image
+    assert find(now, template(now, edge), edge, AppearanceParams()) is None
+    assert find(now, template(then, (60.0, 80.0, 34.0, 30.0)), (60.0, 80.0, 34.0, 30.0), AppearanceParams(0)) is None
+
+
+def test_tracks_sharing_a_blob_are_placed_between_the_layout_and_their_templates() -> None:
+    """Tracks take templates only while seen on their own; in a shared blob each template is sought about its
+    prediction, the layout starts from where it was found, and the placed box goes `look_weight` of the way from
+    the layout's place to there."""
+    class Looks:
+        def __init__(self) -> None:
+            self.taken: list[tuple] = []
+            self.sought: list[tuple] = []
+
+        def capture(self, box: tuple) -> np.ndarray:
+            self.taken.append(box)
+            return np.ones((8, 8), np.float32)
+
+        def find(self, patch: np.ndarray, box: tuple) -> tuple[float, float]:
+            self.sought.append(box)
+            return 4.0, 0.0
+
+    looks, laid = Looks(), []
+
+    def layout(preds: np.ndarray, sizes: np.ndarray, fills: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        laid.append(preds.copy())
+        return preds - np.float32([4, 0, 0, 0])  # the pixels say: where predicted
+
+    mot = MultiObjectTracker(width=346, height=260)
+    for i in range(30):  # apart, towards each other at 100 px/s
+        mot.update(i * 10_000, np.float32([[60 + i, 100, 30, 30], [151 - i, 100, 30, 30]]), looks=looks)
+    assert looks.taken and not looks.sought
+    taken = len(looks.taken)
+    pred = {tr.ident: tr.predict(300_000) for tr in mot.tracks}
+    tracks = mot.update(300_000, np.float32([[88, 100, 63, 30]]), layout=layout, looks=looks)
+    assert len(looks.taken) == taken and len(looks.sought) == 2  # none taken in the shared blob
+    assert sorted(laid[0][:, 0].tolist()) == pytest.approx(sorted(p[0] + 4 for p in pred.values()))
+    for tr in tracks:
+        assert tr.box[0] == pytest.approx(pred[tr.ident][0] + 2) and tr.box[1] == pytest.approx(pred[tr.ident][1])
 
 
 def test_part_velocity_follows_each_targets_own_part_of_a_blob_and_nothing_plain_new_or_a_sliver() -> None:

@@ -8,7 +8,8 @@ Every stage has the variants of the seeds, chosen by `TrackerParams`:
   method: corner clusters);
 - key-event sampling (seed 004) thins an update's events once they exceed `max_events`;
 - a track's blob is split where its points move two ways, and tracks sharing a blob learn their
-  velocities from the motion of their own parts of it (see `motion.py`).
+  velocities from the motion of their own parts of it (see `motion.py`) and are found by what they
+  looked like on their own (see `appearance.py`).
 """
 
 from __future__ import annotations
@@ -22,10 +23,11 @@ import numpy as np
 
 from services import events as ev_ops
 from services.messages import EVENT_DTYPE
-from services.tracker.objects import motion
+from services.tracker.objects import appearance, motion
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.activity import FreshCounts
-from services.tracker.objects.association import LOST, AssociationParams, MultiObjectTracker, intersection
+from services.tracker.objects.appearance import AppearanceParams, find, template
+from services.tracker.objects.association import LOST, AssociationParams, Box, MultiObjectTracker, intersection
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
 from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
@@ -52,6 +54,7 @@ class TrackerParams:
     layout: LayoutParams = field(default_factory=LayoutParams)
     motion: MotionParams = field(default_factory=MotionParams)
     shift: ShiftParams = field(default_factory=ShiftParams)
+    appearance: AppearanceParams = field(default_factory=AppearanceParams)
 
     def __post_init__(self) -> None:
         if self.frames not in FRAMES:
@@ -135,7 +138,7 @@ class ObjectTracker:
             t_us, boxes, fresh=self.fresh.count,
             layout=lambda preds, sizes, fills, fixed: self._layout(image, preds, sizes, fills, fixed),
             leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions,
-            parts=parts)
+            parts=parts, looks=_Looks(image, self.params.appearance) if self.params.appearance.reach_px else None)
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
@@ -216,6 +219,19 @@ class ObjectTracker:
         self._past.clear()
 
 
+class _Looks:
+    """The association's `Looks` on one update's image."""
+
+    def __init__(self, image: np.ndarray, params: AppearanceParams) -> None:
+        self.image, self.params = image, params
+
+    def capture(self, box: Box) -> np.ndarray | None:
+        return template(self.image, box)
+
+    def find(self, patch: np.ndarray, box: Box) -> tuple[float, float] | None:
+        return find(self.image, patch, box, self.params)
+
+
 def warm_up(params: TrackerParams | None = None) -> None:
     """Loads the numba kernels of an update (compiles them, the first time on a machine) on two small
     squares that cross, so that a live tracker's first packets wait for none of it: loading them took
@@ -238,3 +254,4 @@ def warm_up(params: TrackerParams | None = None) -> None:
         tracker.accept(events)
         tracker.generate(t_us)
     motion.warm_up()
+    appearance.warm_up()
