@@ -61,19 +61,30 @@ def find(image: np.ndarray, patch: np.ndarray, box: Box, params: AppearanceParam
     h, w = image.shape
     if x0 < 0 or y0 < 0 or x0 + (pw + 2 * r) * scale > w or y0 + (ph + 2 * r) * scale > h:
         return None
-    scores = _correlations(image, patch, x0, y0, scale, r)
-    by, bx = divmod(int(np.argmax(scores)), 2 * r + 1)
-    if scores[by, bx] < params.min_score:
+    score, fx, fy = _best(image, patch, x0, y0, scale, r)
+    if score < params.min_score:
         return None
-    fx, fy = bx + _vertex(scores[by, bx - 1:bx + 2]), by + _vertex(scores[by - 1:by + 2, bx])
     return x0 + (fx + pw / 2) * scale - cx, y0 + (fy + ph / 2) * scale - cy
 
 
-def _vertex(three: np.ndarray) -> float:
-    """The offset of the top of the parabola through three scores about the middle one (0 at an edge)."""
-    if len(three) < 3:
-        return 0.0
-    a, b, c = (float(v) for v in three)
+@numba.njit(cache=True, nogil=True)
+def _best(image, patch, x0, y0, scale, r):  # noqa: ANN001, ANN202 - numba kernel
+    """The best of `_correlations` and where it is (shrunk pixels from (x0, y0)), to sub-pixel by a parabola through
+    it and its neighbours on each axis."""
+    scores = _correlations(image, patch, x0, y0, scale, r)
+    at = np.argmax(scores)
+    by, bx = at // scores.shape[1], at % scores.shape[1]
+    fx, fy = float(bx), float(by)
+    if 0 < bx < scores.shape[1] - 1:
+        fx += _vertex(scores[by, bx - 1], scores[by, bx], scores[by, bx + 1])
+    if 0 < by < scores.shape[0] - 1:
+        fy += _vertex(scores[by - 1, bx], scores[by, bx], scores[by + 1, bx])
+    return scores[by, bx], fx, fy
+
+
+@numba.njit(cache=True, nogil=True)
+def _vertex(a, b, c):  # noqa: ANN001, ANN202 - numba kernel
+    """The offset of the top of the parabola through three scores from the middle one (0 if it has none)."""
     curve = a - 2 * b + c
     return 0.5 * (a - c) / curve if curve < 0 else 0.0
 
@@ -89,19 +100,25 @@ def _correlations(image, patch, x0, y0, scale, r):  # noqa: ANN001, ANN202 - num
     g = _shrunk(image, x0, y0, ph + 2 * r, pw + 2 * r, scale)
     t -= t.mean()
     t_norm = np.sqrt((t * t).sum())
-    n = ph * pw
     out = np.full((2 * r + 1, 2 * r + 1), -1.0)
     if t_norm <= 1e-6:
         return out
+    gh, gw = g.shape  # sums and sums of squares of the image's windows from integral images: one product a pixel
+    total, squares = np.zeros((gh + 1, gw + 1)), np.zeros((gh + 1, gw + 1))
+    for y in range(gh):
+        for x in range(gw):
+            v = g[y, x]
+            total[y + 1, x + 1] = total[y, x + 1] + total[y + 1, x] - total[y, x] + v
+            squares[y + 1, x + 1] = squares[y, x + 1] + squares[y + 1, x] - squares[y, x] + v * v
+    n = ph * pw
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
-            s = s2 = c = 0.0
+            c = 0.0
             for y in range(ph):
                 for x in range(pw):
-                    v = g[dy + y, dx + x]
-                    s += v
-                    s2 += v * v
-                    c += v * t[y, x]
+                    c += g[dy + y, dx + x] * t[y, x]
+            s = total[dy + ph, dx + pw] - total[dy, dx + pw] - total[dy + ph, dx] + total[dy, dx]
+            s2 = squares[dy + ph, dx + pw] - squares[dy, dx + pw] - squares[dy + ph, dx] + squares[dy, dx]
             var = s2 - s * s / n
             if var > 1e-9:
                 out[dy, dx] = c / (np.sqrt(var) * t_norm)

@@ -133,8 +133,8 @@ class AssociationParams:
     # where a track in a shared blob found its template (`Looks`), its prediction moves there before the layout,
     # and its placed centre moves this share of the way from the layout's to there after it: two measures of where
     # it is, one by which pixels fired, one by their pattern. On four sets of 60 seeds (200-259, 500-679) id
-    # switches per object-minute 1.919 -> 1.844, IDF1 0.848 -> 0.854, precision@20 0.9553 -> 0.9550 (1.0: 1.827
-    # switches but precision@20 0.9537; 0.7: 1.819 and 0.9548; the template only as the layout's start: 1.88)
+    # switches per object-minute 1.919 -> 1.790 (on each set: 1.84 -> 1.59, 2.19 -> 2.16, 2.12 -> 1.99,
+    # 1.52 -> 1.42), precision@20 0.9553 -> 0.9561, IDF1 0.848 -> 0.856 (0.7: 1.773 and 0.9554)
     look_weight: float = 0.5
     # a confirmed track's velocity changes by at most this per second: a box whose edges jump as its blob merges,
     # splits or changes shape (traced: 1400 px/s learnt from one such jump, the track then coasting off its
