@@ -153,7 +153,12 @@ class TruthBoxes(_WithTruth):
 
 class TruthPlacement(_WithTruth):
     """The default tracker whose tracks sharing a blob are placed on the truth boxes it is given (of the objects
-    in view, or of every object in the image) their predictions overlap most, one to one, instead of by its layout."""
+    in view, or of every object in the image) their predictions overlap most, one to one, instead of by its layout
+    (and not moved towards where their templates are)."""
+
+    def __init__(self, width: int, height: int, truth: np.ndarray) -> None:
+        super().__init__(width, height, truth)
+        self.params.appearance.reach_px = 0
 
     def _detect(self, image: np.ndarray, t_us: int) -> np.ndarray:
         self.t_us = t_us  # the layout of this update places on the truth of this time

@@ -85,7 +85,8 @@ def method_params(name: str) -> TrackerParams:
     base = METHODS[name]
     return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
                    adaptive=replace(base.adaptive), association=replace(base.association),
-                   layout=replace(base.layout), motion=replace(base.motion), shift=replace(base.shift))
+                   layout=replace(base.layout), motion=replace(base.motion), shift=replace(base.shift),
+                   appearance=replace(base.appearance))
 
 
 @dataclass
