@@ -26,7 +26,7 @@ from services.messages import EVENT_DTYPE
 from services.tracker.objects import appearance, motion
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.activity import FreshCounts
-from services.tracker.objects.appearance import AppearanceParams, find, template
+from services.tracker.objects.appearance import AppearanceParams
 from services.tracker.objects.association import LOST, AssociationParams, Box, MultiObjectTracker, intersection
 from services.tracker.objects.clusters import ClusterParams, detect_clusters
 from services.tracker.objects.corners import CornerParams, detect_corner_clusters
@@ -227,10 +227,10 @@ class _Looks:
         self.image, self.params = image, params
 
     def capture(self, box: Box) -> np.ndarray | None:
-        return template(self.image, box)
+        return appearance.template(self.image, box)
 
     def find(self, patch: np.ndarray, box: Box) -> tuple[float, float] | None:
-        return find(self.image, patch, box, self.params)
+        return appearance.find(self.image, patch, box, self.params)
 
 
 def warm_up(params: TrackerParams | None = None) -> None:
