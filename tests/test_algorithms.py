@@ -566,6 +566,21 @@ def test_layout_leaves_the_pixels_of_tracks_outside_the_blob_to_them() -> None:
     assert fit_layout(img, pred, LayoutParams())[0, 1] < 92  # what it did before
 
 
+def test_layout_among_many_tracks_places_as_among_few() -> None:
+    """The part of the neighbour's box the target's box can reach (its lowest 16 rows) cut into 40 tiles: the same
+    pixels are covered there, so the box is placed where it is beside the one box. Summed exactly over their
+    intersections the tiles cost 2^40 sums (a method with noisy tracks stalled there); past `EXACT_OTHERS` the gains
+    come from a mask of what the others cover."""
+    own, neighbour = [50, 100, 40, 30], [50, 60, 40, 36]
+    img = _blob_image([own])
+    img[60:96, 50:90] = 1.0
+    pred = np.float32([[50, 92, 40, 30]])
+    tiles = np.float32([[50 + 4 * i, 80 + 4 * j, 4, 4] for i in range(10) for j in range(4)])
+    beside_one = fit_layout(img, pred, LayoutParams(), fixed=np.float32([neighbour]))
+    np.testing.assert_array_equal(fit_layout(img, pred, LayoutParams(), fixed=tiles), beside_one)
+    np.testing.assert_allclose(beside_one[0], own, atol=1)
+
+
 def test_layout_lets_a_box_go_on_out_of_the_image_with_its_target() -> None:
     """Two targets in one blob at the left border, one of them half out of the image: its box stays
     where its prediction puts it, across the border, instead of being pushed in onto the other."""

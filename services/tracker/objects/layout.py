@@ -34,6 +34,10 @@ import numpy as np
 
 from services.tracker.objects.clusters import trimmed_box
 
+# beyond this many boxes reaching into where a box may go, its gains are summed on a mask of what they cover: the
+# exact sums over their intersections (`_cover`) cost 2^m each (a method that made 40 tracks stalled on one update)
+EXACT_OTHERS = 4
+
 
 @dataclass
 class LayoutParams:
@@ -119,7 +123,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
     `pull` times its squared distance from `pred`; then each of its edges the move within `resize` that does, less
     `size_pull` times its squared relative size change from `own`, per px^2 of box.
     One integral image of recent pixels (int32: exact, and lighter than the gains' floats) serves every
-    sum (see `_cover`)."""
+    sum (see `_cover`), unless more than `EXACT_OTHERS` boxes reach into where a box may go (see `_uncovered`)."""
     h, w = region.shape
     total = np.zeros((h + 1, w + 1), np.int32)
     for y in range(h):
@@ -131,19 +135,26 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
     k_n = len(pos)
     others = np.empty(k_n - 1, np.int64)
     rect = np.empty(4, np.int64)
+    window = np.empty(4, np.int64)
     for _ in range(rounds):
         for k in range(k_move):
+            # where this box may go in this round: the others beyond it do not change its gains
+            window[0], window[1] = max(pos[k, 0] - reach - resize, 0), max(pos[k, 1] - reach - resize, 0)
+            window[2] = min(pos[k, 0] + size[k, 0] + reach + resize, w)
+            window[3] = min(pos[k, 1] + size[k, 1] + reach + resize, h)
             m = 0
             for j in range(k_n):
-                if j != k:
+                if (j != k and pos[j, 0] < window[2] and pos[j, 0] + size[j, 0] > window[0]
+                        and pos[j, 1] < window[3] and pos[j, 1] + size[j, 1] > window[1]):
                     others[m] = j
                     m += 1
+            free, area = _uncovered(region, recent, pos, size, others, m, window)
             best, bx, by = -np.inf, pos[k, 0], pos[k, 1]
             for ya in range(max(pos[k, 1] - reach, 0), min(pos[k, 1] + reach, h - size[k, 1]) + 1):
                 for xa in range(max(pos[k, 0] - reach, 0), min(pos[k, 0] + reach, w - size[k, 0]) + 1):
                     ex, ey = xa - pred[k, 0], ya - pred[k, 1]
-                    score = (_cover(total, density[k], pos, size, others, m, xa, ya, xa + size[k, 0], ya + size[k, 1])
-                             - pull * (ex * ex + ey * ey))
+                    score = (_gain(total, free, area, window, density[k], pos, size, others, m,
+                                   xa, ya, xa + size[k, 0], ya + size[k, 1]) - pull * (ex * ex + ey * ey))
                     if score > best:
                         best, bx, by = score, xa, ya
             pos[k, 0], pos[k, 1] = bx, by
@@ -156,12 +167,54 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
                     if bw < 1 or bh < 1 or rect[0] < 0 or rect[1] < 0 or rect[2] > w or rect[3] > h:
                         continue
                     dw, dh = bw / own[k, 0] - 1.0, bh / own[k, 1] - 1.0
-                    score = (_cover(total, density[k], pos, size, others, m, rect[0], rect[1], rect[2], rect[3])
+                    score = (_gain(total, free, area, window, density[k], pos, size, others, m,
+                                   rect[0], rect[1], rect[2], rect[3])
                              - size_pull * own[k, 0] * own[k, 1] * (dw * dw + dh * dh))
                     if score > best:
                         best, best_at = score, v
                 rect[edge] = best_at
             pos[k, 0], pos[k, 1], size[k, 0], size[k, 1] = rect[0], rect[1], rect[2] - rect[0], rect[3] - rect[1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _uncovered(region, recent, pos, size, others, m, window):  # noqa: ANN001, ANN202 - numba kernel
+    """Integral images over `window` (x0, y0, x1, y1 of the region) of the recent pixels and of all pixels that none
+    of the first `m` boxes of `others` covers, where those are more than `EXACT_OTHERS` (else empty: `_cover` sums
+    them exactly from the region's one integral image, cheaper for a few)."""
+    if m <= EXACT_OTHERS:
+        return np.zeros((0, 0), np.int32), np.zeros((0, 0), np.int32)
+    x0, y0, x1, y1 = window[0], window[1], window[2], window[3]
+    covered = np.zeros((y1 - y0, x1 - x0), np.bool_)
+    for t in range(m):
+        j = others[t]
+        covered[max(pos[j, 1] - y0, 0):max(pos[j, 1] + size[j, 1] - y0, 0),
+                max(pos[j, 0] - x0, 0):max(pos[j, 0] + size[j, 0] - x0, 0)] = True
+    free = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.int32)
+    area = np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.int32)
+    for y in range(y1 - y0):
+        run_free = run_area = 0
+        for x in range(x1 - x0):
+            if not covered[y, x]:
+                run_area += 1
+                run_free += region[y0 + y, x0 + x] >= recent
+            free[y + 1, x + 1] = free[y, x + 1] + run_free
+            area[y + 1, x + 1] = area[y, x + 1] + run_area
+    return free, area
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _gain(total, free, area, window, density, pos, size, others, m, x0, y0, x1, y1):  # noqa: ANN001, ANN202 - numba kernel
+    """What covering box (x0, y0)-(x1, y1) gains: from the window's integral images of uncovered pixels where
+    `_uncovered` made them, else by `_cover`."""
+    if m <= EXACT_OTHERS:
+        return _cover(total, density, pos, size, others, m, x0, y0, x1, y1)
+    wx0, wy0 = window[0], window[1]
+    hw, ww = free.shape[0] - 1, free.shape[1] - 1
+    sx0, sy0 = min(max(x0 - wx0, 0), ww), min(max(y0 - wy0, 0), hw)
+    sx1, sy1 = min(max(x1 - wx0, 0), ww), min(max(y1 - wy0, 0), hw)
+    recent = free[sy1, sx1] - free[sy0, sx1] - free[sy1, sx0] + free[sy0, sx0]
+    pixels = area[sy1, sx1] - area[sy0, sx1] - area[sy1, sx0] + area[sy0, sx0]
+    return recent - density * pixels
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
