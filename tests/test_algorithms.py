@@ -292,6 +292,27 @@ def test_association_lets_go_of_a_target_leaving_the_image_and_knows_it_when_it_
     assert [t.ident for t in tracks if t.state == TRACKED] == [2]
 
 
+def test_two_targets_back_in_one_blob_are_not_shown_as_a_new_one_and_take_their_ids_back_as_they_part() -> None:
+    """Two targets, 20 and 34 px tall, leave through the right border and come back in together: one blob 60 px
+    tall, which fits neither. It is no new target either: it is reported tentative past the 0.3 s of any target
+    coming in while a lost one waits (`union_us`), and once it parts each part takes its id back. Reported after
+    0.3 s (`union_us` 0), its new id would have gone on with one of them."""
+    none = np.zeros((0, 4), np.float32)
+    for union_us, shown in ((AssociationParams().union_us, False), (0, True)):
+        mot = MultiObjectTracker(AssociationParams(union_us=union_us), width=346, height=260)
+        for i in range(10):
+            mot.update(i * 10_000, np.array([[300 + 5 * i, 30, 30, 20], [300 + 5 * i, 150, 30, 34]], np.float32))
+        assert [t.state for t in mot.update(100_000, none)] == [LOST, LOST]
+        tracks = _follow(mot, 300_000, [344, 100, 2, 60], [-0.2, 0, 0.2, 0], 50)  # 0.5 s in one blob
+        assert any(mot.reported_state(t) == TRACKED for t in tracks) == shown
+        for i in range(20):  # they part along the border
+            x = 334 - 0.2 * i
+            tracks = mot.update(800_000 + i * 10_000, np.array([[x, 100, 346 - x, 20], [x, 126, 346 - x, 34]],
+                                                                np.float32))
+        reported = sorted((t.box[1], t.ident) for t in tracks if mot.reported_state(t) == TRACKED)
+        assert ([ident for _, ident in reported] == [1, 2]) != shown
+
+
 def test_a_target_that_left_beside_another_is_known_back_by_its_size_over_seconds() -> None:
     """The size a target is known by when it comes back is the median of its last seconds in view, not of
     its last fraction of one, which it often spent in one box with a neighbour (two leave together); its
