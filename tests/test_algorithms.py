@@ -1028,7 +1028,8 @@ def test_a_track_coming_in_where_a_lost_one_may_take_it_is_reported_tentative_un
 def test_a_tracks_blob_that_moves_two_ways_is_split_and_the_track_keeps_its_part() -> None:
     """Two targets first seen together are one blob and one track; once the blob's points move two ways
     the track keeps the part its box overlaps more and the other part becomes a new track, however old the
-    track. A blob found moving as one is tested again only 150 ms later (the flow costs time)."""
+    track. A blob found moving as one is tested again only 150 ms later if its size changed since (two targets moving
+    apart stretch it), else 300 ms later (the flow costs time)."""
     mot = MultiObjectTracker(width=346, height=260)
     _follow(mot, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)  # the pair, one box
     asked = []
@@ -1046,12 +1047,14 @@ def test_a_tracks_blob_that_moves_two_ways_is_split_and_the_track_keeps_its_part
     second = [t for t in tracks if t.ident != 1]
     assert len(second) == 1 and second[0].hits == 3 and second[0].box[0] > first.box[0] + 30
 
-    calm = MultiObjectTracker(width=346, height=260)  # a blob found moving as one is tested again 150 ms later
-    _follow(calm, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)
-    asked.clear()
-    for i in range(20):  # 190 ms
-        calm.update(60_000 + i * 10_000, np.array([[106 + i, 100, 60, 40]], np.float32), motions=asked.append)
-    assert len(asked) == 2 and len(calm.tracks) == 1
+    for grown, updates, tests in ((0, 20, 1), (2, 20, 2), (0, 35, 2)):  # the same size for 190 ms or 340 ms, or 2 px
+        calm = MultiObjectTracker(width=346, height=260)  # wider from 100 ms on
+        _follow(calm, 0, [100, 100, 60, 40], [1, 0, 0, 0], 6)
+        asked.clear()
+        for i in range(updates):
+            width = 60 + (grown if i >= 4 else 0)
+            calm.update(60_000 + i * 10_000, np.array([[106 + i, 100, width, 40]], np.float32), motions=asked.append)
+        assert len(asked) == tests and len(calm.tracks) == 1
 
     old = MultiObjectTracker(width=346, height=260)  # a union of two that went on as one blob for seconds
     _follow(old, 0, [100, 100, 60, 40], [1, 0, 0, 0], 300)
