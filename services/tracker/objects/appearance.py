@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-Box = tuple[float, float, float, float]
+from services.tracker.objects.association import Box
 
 
 @dataclass

@@ -920,23 +920,26 @@ class MultiObjectTracker:
         not clip, and no bigger than it on the other); where two fit, only one that fits clearly better
         than the other (else it stays new, and is tried again on its next measurement while it comes
         in, as its size grows to the whole of it). Whether it took an id."""
-        sides = self._seen_sides(new)
-        if not sides or (sides & CUT_X and sides & CUT_Y):
-            return False
-        axis = 1 if sides & CUT_X else 0  # the size the border leaves whole: height, or width
-        left = [tr for tr in self.tracks if tr.state == LOST and self._sides(tr.box) & sides]
-        return self._take_id(new, axis, left + self._folded_before(new))
+        at_border = self._left_by(new)
+        return at_border is not None and self._take_id(new, at_border[0], at_border[1] + self._folded_before(new))
 
     def _holds_two(self, tr: Track) -> bool:
         """Whether a track coming in at a border where two or more lost tracks left is longer along it (on the axis
         the border leaves whole) than any of them, by more than `reid_size_ratio`: two of them back in one blob."""
+        at_border = self._left_by(tr)
+        if at_border is None:
+            return False
+        axis, left = at_border
+        known = [size for o in left if (size := o.known_size(axis))]
+        return len(known) >= 2 and tr.box[2 + axis] > self.params.reid_size_ratio * max(known)
+
+    def _left_by(self, tr: Track) -> tuple[int, list[Track]] | None:
+        """For a track coming in at one border (not a corner): the axis of the size that border leaves whole (height,
+        or width) and the lost tracks that left through it; else None."""
         sides = self._seen_sides(tr)
         if not sides or (sides & CUT_X and sides & CUT_Y):
-            return False
-        axis = 1 if sides & CUT_X else 0
-        known = [size for o in self.tracks if o.state == LOST and self._sides(o.box) & sides
-                 and (size := o.known_size(axis))]
-        return len(known) >= 2 and tr.box[2 + axis] > self.params.reid_size_ratio * max(known)
+            return None
+        return 1 if sides & CUT_X else 0, [o for o in self.tracks if o.state == LOST and self._sides(o.box) & sides]
 
     def _out_from_behind(self, new: Track, nearer: list[Track]) -> bool:
         """The same for a target coming out from behind a nearer one: a new track beside a confirmed

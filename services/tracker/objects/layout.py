@@ -136,6 +136,7 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
     others = np.empty(k_n - 1, np.int64)
     rect = np.empty(4, np.int64)
     window = np.empty(4, np.int64)
+    exact = np.zeros((0, 0), np.int32)  # no mask: `_gain` sums exactly
     for _ in range(rounds):
         for k in range(k_move):
             # where this box may go in this round: the others beyond it do not change its gains
@@ -148,7 +149,8 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
                         and pos[j, 1] < window[3] and pos[j, 1] + size[j, 1] > window[1]):
                     others[m] = j
                     m += 1
-            free, area = _uncovered(region, recent, pos, size, others, m, window)
+            free, area = (_uncovered(region, recent, pos, size, others, m, window) if m > EXACT_OTHERS
+                          else (exact, exact))
             best, bx, by = -np.inf, pos[k, 0], pos[k, 1]
             for ya in range(max(pos[k, 1] - reach, 0), min(pos[k, 1] + reach, h - size[k, 1]) + 1):
                 for xa in range(max(pos[k, 0] - reach, 0), min(pos[k, 0] + reach, w - size[k, 0]) + 1):
@@ -179,10 +181,8 @@ def _fit(region, recent, density, pos, size, pred, reach, pull, rounds, own, res
 @numba.njit(cache=True, nogil=True)
 def _uncovered(region, recent, pos, size, others, m, window):  # noqa: ANN001, ANN202 - numba kernel
     """Integral images over `window` (x0, y0, x1, y1 of the region) of the recent pixels and of all pixels that none
-    of the first `m` boxes of `others` covers, where those are more than `EXACT_OTHERS` (else empty: `_cover` sums
-    them exactly from the region's one integral image, cheaper for a few)."""
-    if m <= EXACT_OTHERS:
-        return np.zeros((0, 0), np.int32), np.zeros((0, 0), np.int32)
+    of the first `m` boxes of `others` covers: made where those are more than `EXACT_OTHERS` (for a few, `_cover`
+    sums them exactly from the region's one integral image, cheaper)."""
     x0, y0, x1, y1 = window[0], window[1], window[2], window[3]
     covered = np.zeros((y1 - y0, x1 - x0), np.bool_)
     for t in range(m):
