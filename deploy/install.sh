@@ -2,7 +2,7 @@
 # Install ETAM on an onboard computer as systemd services (run as root from a checkout):
 #   sudo deploy/install.sh            install, enable and start
 #   sudo deploy/install.sh --no-start install and enable only
-# Creates user `etam`, a virtualenv in /opt/etam/venv, /etc/etam/{etam.env,router.json5}
+# Creates user `etam`, a virtualenv in /opt/etam/venv (its kernels compiled: `etam warmup`), /etc/etam/{etam.env,router.json5}
 # (kept if they exist), the units etam-router, etam-camera, etam-tracker, etam-web, etam.target, and the
 # udev rule for iniVation USB cameras (replug a camera plugged in before).
 set -euo pipefail
@@ -25,6 +25,9 @@ mkdir -p /opt/etam /etc/etam
 python3 -m venv /opt/etam/venv
 /opt/etam/venv/bin/pip install --quiet --upgrade pip
 /opt/etam/venv/bin/pip install --quiet "$src"
+# numba compiles the kernels on their first run: here, once, not on the first flight's first seconds
+echo "install.sh: compiling ETAM's kernels (about a minute on 2 cores; longer on a small board)"
+/opt/etam/venv/bin/etam warmup
 [[ -f /etc/etam/etam.env ]] || install -m 0644 "$here/etam.env" /etc/etam/etam.env
 [[ -f /etc/etam/router.json5 ]] || install -m 0644 "$here/zenoh/router.json5" /etc/etam/router.json5
 install -m 0644 "$here"/systemd/*.service "$here"/systemd/etam.target /etc/systemd/system/

@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from zenoh import ZError
@@ -525,6 +526,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_warmup(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from services.kernels import PARTS
+
+    took = {}
+    with tqdm(PARTS.items(), unit="part", disable=args.json) as bar:
+        for name, warm_up in bar:
+            bar.set_description(name)
+            start = time.perf_counter()
+            warm_up()
+            took[name] = round(time.perf_counter() - start, 2)
+    print(json.dumps({"parts": took, "seconds": round(sum(took.values()), 2)}) if args.json else
+          "kernels loaded (and cached for every later run): "
+          + ", ".join(f"{name} {seconds:.1f} s" for name, seconds in took.items()))
+    return 0
+
+
 METHOD_HELP = ("tracking method: contour (default; decayed image, occupancy clusters), adaptive (time/count "
                "window chosen by frame quality), camshift (CamShift on edges), corner (corner clusters), "
                "keyevents (contour on key events)")
@@ -788,6 +807,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="shorter runs (for smoke tests)")
     p.add_argument("--only", action="append", help="run only these benchmarks (e.g. transport)")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("warmup", help="compile every service's numba kernels ahead (once after installing: a "
+                                      "fresh install's first start otherwise compiles for up to a minute)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary (seconds per part), no progress bar")
+    p.set_defaults(func=_cmd_warmup)
     return parser
 
 

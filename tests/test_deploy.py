@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import re
 import shlex
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
+from services import kernels
 from services.cli import build_parser
 from services.config import ZenohSettings
 from tests.conftest import ROOT, etam_argv, free_port, spawn, wait_for
@@ -60,7 +64,7 @@ def test_router_config_serves_a_rig(tmp_path: Path, rig: str) -> None:
 
 
 @pytest.mark.parametrize("command", ["up", "router", "camera", "tracker", "web", "ls", "echo", "hz", "sim", "info",
-                                     "convert", "record", "replay", "bench", "track", "eval"])
+                                     "convert", "record", "replay", "bench", "track", "eval", "warmup"])
 def test_every_command_has_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:
         build_parser().parse_args([command, "--help"])
@@ -79,3 +83,23 @@ def test_udev_rule_covers_every_camera_the_driver_opens() -> None:
     assert int(vendor, 16) == pr.VID
     assert all(fnmatch(f"{pid:04x}", product) for pid in pr.PIDS)
     assert 'GROUP="video"' in line and "65-etam-inivation.rules" in (DEPLOY / "install.sh").read_text()
+
+
+def test_warmup_loads_every_part_and_reports_each_as_json() -> None:
+    run = subprocess.run(etam_argv("warmup", "--json"), cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    report = json.loads(run.stdout)
+    assert list(report["parts"]) == list(kernels.PARTS) and all(s >= 0 for s in report["parts"].values())
+    assert report["seconds"] == pytest.approx(sum(report["parts"].values()), abs=0.05)
+
+
+def test_a_load_that_compiles_is_told_at_its_start_and_end_and_a_quick_one_is_not(
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(kernels, "SLOW_S", 0.05)
+    with caplog.at_level(logging.INFO, logger="services.kernels"):
+        assert kernels.load("the quick part", lambda: None) < 0.05
+        assert kernels.load("the slow part", lambda: time.sleep(0.3)) >= 0.3
+    told = [r.getMessage() for r in caplog.records]
+    assert not any("quick" in m for m in told)
+    assert [m.split(":")[0] for m in told] == ["compiling the slow part's kernels",
+                                               "the slow part's kernels ready in 0 s"]

@@ -15,7 +15,7 @@ from services.geometry import unit_rays
 from services.mapper.trajectory import read_tum
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.evaluation import evaluate_odometry
-from services.tracker.ego.rotation import LOST, STILL, TRACKING, RotationParams, RotationTracker
+from services.tracker.ego.rotation import LOST, STILL, TRACKING, RotationParams, RotationTracker, warm_up
 from tests.conftest import etam_argv
 
 W, H = 240, 180
@@ -173,3 +173,13 @@ def test_panoramic_map_pulls_a_drifted_orientation_back():
     assert np.degrees((truth.inv() * aligned).magnitude()) < 0.2
     away = Rotation.from_euler("Y", 180, degrees=True) * off  # looking where nothing was mapped
     assert np.allclose(pano.align(rays, away).as_quat(), away.as_quat())
+
+
+def test_the_rotation_warm_up_tracks_its_pan_so_every_kernel_of_an_update_loads(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The live service runs it before its first events (`services.kernels`): a scene it did not track would
+    leave the panorama's kernels to compile on the camera's first turn."""
+    aligned = []
+    monkeypatch.setattr(RotationTracker, "_track_map", lambda self, est: aligned.append(est.state))
+    warm_up()
+    assert len(aligned) >= 20 and set(aligned) == {TRACKING}

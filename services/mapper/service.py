@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from services import keys
+from services.kernels import load
 from services.mapper.cloud import VoxelMap
 from services.mapper.keyframes import Keyframe, KeyframeMapper, KeyframeParams
 from services.mapper.mosaic import Mosaic, MosaicParams, to_png16
@@ -108,7 +109,8 @@ class MapperService(Service):
 
     async def main(self) -> None:
         if self.mode == "depth":
-            await asyncio.to_thread(warm_up, self.method)  # before any event can queue up
+            # before any event can queue up
+            await asyncio.to_thread(load, f"the mapper ({self.method})", lambda: warm_up(self.method))
         self.serve("all", self._whole_map)
         await asyncio.gather(*(self._events(cam) for cam in self.cams), self._follow_poses(), self._work(),
                              self.follow_cameras("*", self.cameras, lambda: not set(self.cams) <= set(self.cameras)))

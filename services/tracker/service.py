@@ -27,6 +27,7 @@ import numpy as np
 from services import events as ev_ops
 from services import keys
 from services.camera.filters import Undistort
+from services.kernels import load
 from services.messages import (CameraInfo, Command, EventPacket, Image, ImuPacket, MessageError, PointCloud, Pose,
                                Reply, Tracks, image_to_array)
 from services.runtime import Output, Service, ServiceOptions
@@ -34,6 +35,7 @@ from services.tracker.ego import MODES as EGO_MODES
 from services.tracker.ego.follow import MapFollower
 from services.tracker.ego.loop import MapRefresh, RefreshParams
 from services.tracker.ego.rotation import LOST, STATES, RotationParams, RotationTracker
+from services.tracker.ego.rotation import warm_up as rotation_warm_up
 from services.tracker.objects.position import sizes_for, xyz_from_depth, xyz_from_size
 from services.tracker.objects.tracker import ObjectTracker, TrackerParams, TrackSet, warm_up
 
@@ -126,6 +128,8 @@ class TrackerService(Service):
         a rig moves as one), published as Poses on ``tracker/ego/pose`` (`out`)."""
         last_us, undistort = -1, None
         early: collections.deque[np.ndarray] = collections.deque(maxlen=EARLY_PACKETS)
+        if self.ego == "rotation":
+            await asyncio.to_thread(load, "the rotation tracker", rotation_warm_up)  # before any packet can queue up
         async for key, msg in self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo",
                                              maxsize=1024):
             assert isinstance(msg, EventPacket)
@@ -228,7 +232,7 @@ class TrackerService(Service):
 
     async def _track(self) -> None:
         out = self.publisher("tracks")
-        await asyncio.to_thread(warm_up, self.tracker_params)  # before any packet can queue up
+        await asyncio.to_thread(load, "the object tracker", lambda: warm_up(self.tracker_params))  # before any packet
         events = self.subscribe(keys.events(self.rig, self.cam), EventPacket, policy="fifo", maxsize=1024)
         async for key, msg in events:
             assert isinstance(msg, EventPacket)

@@ -21,6 +21,7 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from services.geometry import pixel_rays, unit_rays
+from services.messages import EVENT_DTYPE
 from services.tracker.ego.contrast import RotationContrast
 from services.tracker.ego.panorama import PanoramaMap
 
@@ -229,3 +230,20 @@ class RotationTracker:
         est.quat = self.orientation.as_quat()
         self._before, self._last = self._last, est
         return est
+
+
+def warm_up() -> None:
+    """Loads the kernels of an update (compiles them, the first time on a machine; see `services.kernels`) on a
+    small camera panning over a few bright dots, which it tracks (so the panorama's kernels load too)."""
+    width, height, focal = 64, 48, 50.0
+    K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    dots = rng.uniform([0, 4], [width, height - 4], (24, 2))
+    t = np.arange(0, 300_000, 50)  # us: an event per dot every 50 us, as the view pans at 200 px/s
+    x = (dots[:, 0][None, :] + 200e-6 * t[:, None]) % width
+    events = np.zeros(x.size, EVENT_DTYPE)
+    events["t"] = np.repeat(t, len(dots))
+    events["x"], events["y"] = x.ravel(), np.tile(dots[:, 1], len(t))
+    tracker = RotationTracker(K, width, height)
+    for chunk in np.array_split(events, 30):
+        tracker.add(chunk)

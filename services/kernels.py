@@ -1,0 +1,67 @@
+"""Loading the numba kernels a service runs before its first events, and every service's ahead (`etam warmup`).
+
+numba compiles a kernel on a machine's first run and caches it beside the code (`__pycache__`): the object
+tracker's take some 35 s on a 2-core VM, far longer on a drone's ARM board. A live service that compiled on its
+first packets held the camera's events meanwhile and dropped the oldest, so each service loads its kernels first
+(`load`), and says so where that takes long: a fresh install's first `etam up` is otherwise silent for half a
+minute. `etam warmup` loads them all once, after installing (a deployment image's build step, say).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+log = logging.getLogger(__name__)
+
+SLOW_S = 2.0  # a load this long is compiling: said in the log, once at its start and once at its end
+
+
+def load(what: str, warm_up: Callable[[], object]) -> float:
+    """Runs `warm_up`, which loads the kernels of `what` (say "the object tracker"); its seconds."""
+    start = time.perf_counter()
+    note = threading.Timer(SLOW_S, log.info, ("compiling %s's kernels: this machine's first run (under a minute on "
+                                              "most; `etam warmup` does it ahead), cached after", what))
+    note.daemon = True
+    note.start()
+    try:
+        warm_up()
+    finally:
+        note.cancel()
+    took = time.perf_counter() - start
+    if took >= SLOW_S:
+        log.info("%s's kernels ready in %.0f s", what, took)
+    return took
+
+
+def _object_tracker() -> None:
+    from services.tracker.objects.tracker import METHODS, method_params, warm_up
+
+    for method in METHODS:
+        warm_up(method_params(method))
+
+
+def _rotation() -> None:
+    from services.tracker.ego.rotation import warm_up
+
+    warm_up()
+
+
+def _mapper(method: str) -> Callable[[], None]:
+    def run() -> None:
+        from services.mapper.warmup import warm_up
+
+        warm_up(method)
+    return run
+
+
+# what `etam warmup` loads: the services' own warm-ups (the 6-DoF loop and the mosaic load theirs on their first
+# events, as do the camera's and the dashboard's few small kernels)
+PARTS: dict[str, Callable[[], None]] = {
+    "object tracker (every method)": _object_tracker,
+    "rotation tracker": _rotation,
+    "mapper (sweep)": _mapper("sweep"),
+    "mapper (stereo)": _mapper("stereo"),
+}
