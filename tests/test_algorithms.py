@@ -7,6 +7,9 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from services import config, keys
 from services.camera.packetizer import Packetizer
@@ -25,7 +28,8 @@ from services.tracker.objects.association import (
 )
 from services.tracker.objects.appearance import AppearanceParams, find, template
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
-from services.tracker.objects.motion import MotionParams, ShiftParams, part_velocity, split_by_motion
+from services.tracker.objects.motion import (MotionParams, ShiftParams, _median, _percentile, part_velocity,
+                                              split_by_motion)
 
 
 def _events(ts: list[int]) -> np.ndarray:
@@ -1256,3 +1260,14 @@ def test_a_moving_targets_reported_box_drops_the_trail_its_motion_leaves() -> No
     coming_in = MultiObjectTracker(width=346, height=260)
     tracks = _follow(coming_in, 0, [0, 100, 6, 20], [0, 0, 3, 0], 8)  # grows out of the left border
     assert coming_in.seen_box(tracks[0]) == pytest.approx(tuple(tracks[0].box), abs=0.1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(hnp.arrays(np.float64, st.integers(1, 60), elements=st.floats(-1e4, 1e4)), st.floats(0.5, 99.5))
+def test_motion_median_and_percentile_are_numpys(values: np.ndarray, q: float) -> None:
+    """The velocity groups' own order statistics (numba's `np.median` and `np.percentile` were a seventh of the
+    tracker's compile time): NumPy's median exactly; its percentile up to rounding (numba's linear formula,
+    which the tracker used before, is the one they follow to the bit)."""
+    column = np.stack([values, values], axis=1)[:, 0]  # a strided column, as the kernel gets them
+    assert _median(column) == np.median(values)
+    assert _percentile(column, q) == pytest.approx(np.percentile(values, q), rel=1e-12, abs=1e-9)

@@ -176,10 +176,10 @@ def components(mask):  # noqa: ANN001, ANN201 - numba kernel
             final[i] = final[r]
     labels = np.zeros((rows, cols), np.int32)
     stats = np.zeros((count, 5), np.int32)
-    stats[:, X] = cols
-    stats[:, Y] = rows
     x1 = np.zeros(count, np.int32)
     y1 = np.zeros(count, np.int32)
+    for lab in range(1, count):  # element by element: whole-column assignments compiled a second of error messages
+        stats[lab, X], stats[lab, Y] = cols, rows
     for i in range(n):
         lab = final[i]
         labels[row[i], start[i]:stop[i]] = lab
@@ -188,9 +188,8 @@ def components(mask):  # noqa: ANN001, ANN201 - numba kernel
         x1[lab] = max(x1[lab], stop[i])
         y1[lab] = max(y1[lab], row[i] + 1)
         stats[lab, AREA] += stop[i] - start[i]
-    stats[:, W] = x1 - stats[:, X]
-    stats[:, H] = y1 - stats[:, Y]
-    stats[0] = 0
+    for lab in range(1, count):
+        stats[lab, W], stats[lab, H] = x1[lab] - stats[lab, X], y1[lab] - stats[lab, Y]
     return count, labels, stats
 
 

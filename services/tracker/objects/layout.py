@@ -91,7 +91,9 @@ def _placed(image, boxes, own, recent, density, reach, pull, rounds, resize, siz
         region = image[y0:y1, x0:x1]
     else:  # beyond the image nothing fires: a box may go on out of it, as its target does
         region = np.zeros((y1 - y0, x1 - x0), image.dtype)
-        region[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = image[iy0:iy1, ix0:ix1]
+        for y in range(iy0, iy1):  # by element: a block assignment compiled a second of error messages
+            for x in range(ix0, ix1):
+                region[y - y0, x - x0] = image[y, x]
     k_n = len(boxes)
     near = ((fixed[:, 0] < x1) & (fixed[:, 0] + fixed[:, 2] > x0) & (fixed[:, 1] < y1)
             & (fixed[:, 1] + fixed[:, 3] > y0))
