@@ -1,10 +1,10 @@
 """Loading the numba kernels a service runs before its first events, and every service's ahead (`etam warmup`).
 
 numba compiles a kernel on a machine's first run and caches it beside the code (`__pycache__`): the object
-tracker's take about half a minute on a 2-core VM, far longer on a drone's ARM board. A live service that compiled on its
-first packets held the camera's events meanwhile and dropped the oldest, so each service loads its kernels first
-(`load`), and says so where that takes long: a fresh install's first `etam up` is otherwise silent for half a
-minute. `etam warmup` loads them all once, after installing (a deployment image's build step, say).
+tracker's take about half a minute on a 2-core VM, far longer on a drone's ARM board. A live service that
+compiled on its first packets held the camera's events meanwhile and dropped the oldest, so each service loads
+its kernels first (`load`), and says so where that takes long: a fresh install's first `etam up` was otherwise
+silent for half a minute. `etam warmup` loads them all once, after installing (a deployment image's build step).
 """
 
 from __future__ import annotations
