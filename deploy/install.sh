@@ -2,8 +2,8 @@
 # Install ETAM on an onboard computer as systemd services (run as root from a checkout):
 #   sudo deploy/install.sh            install, enable and start
 #   sudo deploy/install.sh --no-start install and enable only
-# Creates user `etam`, a virtualenv in /opt/etam/venv (its kernels compiled: `etam warmup`), /etc/etam/{etam.env,router.json5}
-# (kept if they exist), the units etam-router, etam-camera, etam-tracker, etam-web, etam.target, and the
+# Creates user `etam`, a virtualenv in /opt/etam/venv (its kernels compiled: `etam warmup`),
+# /etc/etam/{etam.env,router.json5} (kept if they exist), the units etam-router, etam-camera, etam-tracker, etam-web, etam.target, and the
 # udev rule for iniVation USB cameras (replug a camera plugged in before).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
