@@ -3,8 +3,8 @@
 #   sudo deploy/install.sh            install, enable and start
 #   sudo deploy/install.sh --no-start install and enable only
 # Creates user `etam`, a virtualenv in /opt/etam/venv (its kernels compiled: `etam warmup`),
-# /etc/etam/{etam.env,router.json5} (kept if they exist), the units etam-router, etam-camera, etam-tracker, etam-web, etam.target, and the
-# udev rule for iniVation USB cameras (replug a camera plugged in before).
+# /etc/etam/{etam.env,router.json5} (kept if they exist), the units etam-router, etam-camera, etam-tracker,
+# etam-web, etam.target, and the udev rule for iniVation USB cameras (replug a camera plugged in before).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 src="$(dirname "$here")"
