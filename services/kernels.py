@@ -49,6 +49,12 @@ def _rotation() -> None:
     warm_up()
 
 
+def _usb() -> None:
+    from services.camera.usb.words import warm_up
+
+    warm_up()
+
+
 def _mapper(method: str) -> Callable[[], None]:
     def run() -> None:
         from services.mapper.warmup import warm_up
@@ -57,11 +63,12 @@ def _mapper(method: str) -> Callable[[], None]:
     return run
 
 
-# what `etam warmup` loads: the services' own warm-ups (the 6-DoF loop and the mosaic load theirs on their first
-# events, as do the camera's and the dashboard's few small kernels)
+# what `etam warmup` loads: the services' own warm-ups (the mosaic loads its kernels on its first events, as do the
+# simulator's and the dashboard's few small ones; the 6-DoF loop has none)
 PARTS: dict[str, Callable[[], None]] = {
     "object tracker (every method)": _object_tracker,
     "rotation tracker": _rotation,
+    "USB decoder": _usb,
     "mapper (sweep)": _mapper("sweep"),
     "mapper (stereo)": _mapper("stereo"),
 }

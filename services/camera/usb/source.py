@@ -16,6 +16,8 @@ import usb.core
 
 from services.camera.formats import Calibration, FormatError
 from services.camera.usb.driver import UsbCamera, UsbError, backend
+from services.camera.usb.words import warm_up
+from services.kernels import load
 from services.messages import EVENT_DTYPE
 
 log = logging.getLogger(__name__)
@@ -32,6 +34,7 @@ class UsbSource:
     def __init__(self, spec: str, bias: str = "default", roi: tuple[int, int, int, int] | None = None,
                  backend_: usb.backend.IBackend | None = None) -> None:
         serial = spec.partition(":")[2] or None
+        load("the USB decoder", warm_up)  # before the camera streams
         self.camera = UsbCamera(serial, backend_ or backend(), bias=bias, roi=roi)
         info = self.camera.open()  # UsbError: named, before the service starts; it streams from the first advance
         self._started = False

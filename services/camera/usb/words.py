@@ -207,3 +207,11 @@ def _decode_dvx(words, state, imu_bytes, width, height, invert, t, x, y, p, imu)
                 if data & (1 << b):
                     n = _emit(n, t, x, y, p, state[_TS], state[_COL], base + b, pol, invert)
     return n, n_imu
+
+
+def warm_up() -> None:
+    """Loads both decoders' kernels (compiles them, the first time on a machine; see `services.kernels`) before a
+    camera streams: compiled on its first buffers, the decoder would fall seconds behind, and the camera's FIFO
+    fill up meanwhile. A buffer of bytes, as the reader hands over, of no event."""
+    for dvx in (False, True):
+        WordDecoder(dvx, 64, 48).decode(bytes(64))
