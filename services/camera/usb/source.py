@@ -34,7 +34,6 @@ class UsbSource:
     def __init__(self, spec: str, bias: str = "default", roi: tuple[int, int, int, int] | None = None,
                  backend_: usb.backend.IBackend | None = None) -> None:
         serial = spec.partition(":")[2] or None
-        load("the USB decoder", warm_up)  # before the camera streams
         self.camera = UsbCamera(serial, backend_ or backend(), bias=bias, roi=roi)
         info = self.camera.open()  # UsbError: named, before the service starts; it streams from the first advance
         self._started = False
@@ -53,6 +52,7 @@ class UsbSource:
     def advance(self, until_us: int) -> np.ndarray:
         """Every event that arrived (a live camera has none ahead of now)."""
         if not self._started:
+            load("the USB decoder", warm_up)  # before the camera streams (not where `etam up` only checks it opens)
             self.camera.start()
             self._started = True
         if self.camera.failure is not None:
