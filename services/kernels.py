@@ -9,6 +9,7 @@ silent for half a minute. `etam warmup` loads them all once, after installing (a
 
 from __future__ import annotations
 
+import importlib
 import logging
 import threading
 import time
@@ -43,32 +44,17 @@ def _object_tracker() -> None:
         warm_up(method_params(method))
 
 
-def _rotation() -> None:
-    from services.tracker.ego.rotation import warm_up
-
-    warm_up()
-
-
-def _usb() -> None:
-    from services.camera.usb.words import warm_up
-
-    warm_up()
-
-
-def _mapper(method: str) -> Callable[[], None]:
-    def run() -> None:
-        from services.mapper.warmup import warm_up
-
-        warm_up(method)
-    return run
+def _warm_up(module: str, *args: object) -> Callable[[], None]:
+    """`module`'s `warm_up(*args)`, imported when run: the services import this module, so it imports none of theirs."""
+    return lambda: importlib.import_module(module).warm_up(*args)
 
 
 # what `etam warmup` loads: the services' own warm-ups (the mosaic loads its kernels on its first events, as do the
 # simulator's and the dashboard's few small ones; the 6-DoF loop has none)
 PARTS: dict[str, Callable[[], None]] = {
     "object tracker (every method)": _object_tracker,
-    "rotation tracker": _rotation,
-    "USB decoder": _usb,
-    "mapper (sweep)": _mapper("sweep"),
-    "mapper (stereo)": _mapper("stereo"),
+    "rotation tracker": _warm_up("services.tracker.ego.rotation"),
+    "USB decoder": _warm_up("services.camera.usb.words"),
+    "mapper (sweep)": _warm_up("services.mapper.warmup", "sweep"),
+    "mapper (stereo)": _warm_up("services.mapper.warmup", "stereo"),
 }
