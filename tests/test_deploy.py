@@ -95,10 +95,10 @@ def test_warmup_loads_every_part_and_reports_each_as_json() -> None:
 
 def test_a_load_that_compiles_is_told_at_its_start_and_end_and_a_quick_one_is_not(
         caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(kernels, "SLOW_S", 0.05)
     with caplog.at_level(logging.INFO, logger="services.kernels"):
-        assert kernels.load("the quick part", lambda: None) < 0.05
-        assert kernels.load("the slow part", lambda: time.sleep(0.3)) >= 0.3
+        kernels.load("the quick part", lambda: None)  # well under the 2 s of `SLOW_S`
+        monkeypatch.setattr(kernels, "SLOW_S", 0.05)
+        kernels.load("the slow part", lambda: time.sleep(0.3))
     told = [r.getMessage() for r in caplog.records]
     assert not any("quick" in m for m in told)
     assert [m.split(":")[0] for m in told] == ["compiling the slow part's kernels",
