@@ -115,11 +115,11 @@ def test_tracker_follows_a_moving_camera_and_is_lost_on_noise():
     assert len(lost) >= 45 and all(e.state == LOST for e in lost)
 
 
-def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone():
+def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone(monkeypatch):  # noqa: ANN001
     """The live loop's tracker: with known poses and no map it gives nothing (the service passes the known
-    ones on); when the first part of the map comes, it starts at that keyframe's time, catches up through the
-    events it held, and gives its own estimates from the last known pose on, within 1 cm, with the camera's
-    angular velocity; known poses after that are not taken."""
+    ones on); when the first part of the map comes, it starts at the last known pose, the events it held filling
+    its window, and gives its own estimates from there on, within 1 cm, with the camera's angular velocity;
+    known poses after that are not taken."""
     from services.tracker.ego.follow import MapFollower
 
     points = box_edges()
@@ -138,9 +138,14 @@ def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone
     assert not follower.started
     # the first keyframe, seen at 0.3 s, comes now (its sweep took a while)
     follower.add_map(points, 300_000)
+    starts: list[int] = []
+    start_on = SixDofTracker.start_on
+    monkeypatch.setattr(SixDofTracker, "start_on", lambda self, known, t_us: (starts.append(t_us),
+                                                                              start_on(self, known, t_us)))
     estimates = [e for chunk in chunks[100:] for e in follower.add(chunk)]
     assert follower.started and not follower.known(600_000, *true_pose(600_000))
     last_known = 490_000
+    assert starts == [480_000]  # the last known pose on the update grid, not the keyframe's 0.3 s
     assert estimates[0].t_us == last_known + 10_000 and len(estimates) >= 24
     assert all(e.state == TRACKING for e in estimates)
     assert {e.t_us % 20_000 for e in estimates} == {0}

@@ -5,11 +5,13 @@ Bootstrapping is a first map from a short known motion, as `etam odom --mode 6do
 the two processes: until the map's first part (a keyframe's points) comes, the known poses (the
 simulator's truth) are what the loop runs on (the tracker service passes them on, and the mapper sweeps
 its first keyframe with them, asked for after `BOOTSTRAP_US` of known motion), and the events are held.
-Then the tracker starts at that keyframe's time, where its map fits the events best, at the known pose
-there (with the one `step_us` before it for its first velocity), catches up through the held events,
-and gives its estimates from the last known pose on; no known pose is used after. Each later part of
-the map joins the tracker's map. The camera's gyro samples, where it sends any, predict the rotation
-(`gyro.py`).
+Then the tracker starts at the last known pose (with the one `step_us` before it for its first velocity),
+the held events before it filling its window, and gives its estimates from there on; no known pose is
+used after. Started at the keyframe's time instead, where its map fits the events best, it caught up
+through the held events unseen, and drifted there: the more, the longer the mapper's sweep took (on a
+loaded 2-core VM the stereo rig's first own poses were 11-51 cm off; from the last known pose, 0.5-15 cm).
+Each later part of the map joins the tracker's map. The camera's gyro samples, where it sends any, predict
+the rotation (`gyro.py`).
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from services.tracker.ego.sixdof import PoseEstimate, SixDofParams, SixDofTracke
 
 BOOTSTRAP_US = 1_500_000  # known motion after which the first keyframe is asked for (`etam odom --bootstrap`'s)
 KNOWN_KEPT = 1_000  # known poses kept before the start (20 s of them at 50 Hz)
-# events held before the start: the latest this long (from the first keyframe's time, half its segment back, to
-# when its sweep is done, live)
+# events held before the start: the latest this long (the tracker's window before the last known pose, and more
+# where the known poses run behind the events)
 HELD_US = 4_000_000
 
 
@@ -99,8 +101,7 @@ class MapFollower:
         held = ev_ops.concat(list(self._held))
         self._held.clear()
         step = self.tracker.params.step_us
-        # the first keyframe's time, unless its events or poses are no longer held
-        t_us = min(max(self._first_map_us, int(held["t"][0]), known.start_us + step), known.end_us)
+        t_us = max(known.end_us, known.start_us + step)
         t_us -= t_us % step  # on the update grid of `etam odom`
         self.tracker.start_on(known, t_us)
         self._known_until_us = known.end_us
