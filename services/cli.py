@@ -17,6 +17,7 @@ from zenoh import ZError
 
 from services import config
 from services.camera.formats import FormatError
+from services.camera.simulator import DURATION_S as SIM_DURATION_S
 from services.camera.sources import SourceError
 from services.tracker.ego import MODES as EGO_MODES
 from services.tracker.ego import ODOMETRY_MODES, STEREO_WEAK_SHARE
@@ -674,7 +675,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "stereo, the moving camera's IMU)")
     p.add_argument("scene", choices=("objects", "rotation", "6dof", "stereo"), help="scene to simulate")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output file")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds (default 10)")
+    p.add_argument("--duration", type=float, default=SIM_DURATION_S, metavar="S",
+                   help=f"seconds (default {SIM_DURATION_S:g})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--sim-param", action="append", metavar="NAME=VALUE", help=SIM_PARAM_HELP)
     p.add_argument("--peak", type=float, metavar="DEG_S", help="rotation only: the motion scaled to peak at this "

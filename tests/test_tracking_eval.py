@@ -248,7 +248,7 @@ def test_bench_held_out_scores_the_default_method_on_seeds_kept_from_tuning() ->
     assert [(r["method"], r["seed"]) for r in rows] == [(DEFAULT_METHOD, "mean of 4 (71-74)")]
     assert 0.3 < rows[0]["op50"] <= 1 and rows[0]["false_positives_per_s"] >= 0
     text = suite.format_results({"machine": {}, "tracking-held-out": rows})
-    assert "tracking accuracy held out seed mean of 4 (71-74): OP50" in text
+    assert "tracking accuracy held out seed mean of 4 (71-74) (5 s): OP50" in text
     row = rows[0]  # where the errors are: the causes add up to the switches, precision split by crossing
     assert sum(row[f"id_switches_{c}"] for c in ("crossing", "return", "other")) == pytest.approx(
         row["id_switches_per_object_minute"])

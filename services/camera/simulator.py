@@ -26,6 +26,7 @@ from services.camera.filters import Refractory
 from services.messages import EVENT_DTYPE
 
 LOG_EPS = 1e-3  # keeps log intensity finite on black
+DURATION_S = 10.0  # `etam sim`'s default length: under `ObjectsScene`'s period, so its targets never come round again
 
 
 class Scene(Protocol):
