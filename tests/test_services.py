@@ -414,9 +414,9 @@ def test_tracker_and_mapper_close_the_6dof_loop(router: str, rig: str, tmp_path,
     --poses ego --tracking-map: the tracker passes the camera's truth poses on until the mapper's first keyframe
     comes on mapper/map/keyframe, then publishes poses of its own on the same stream (later than any it passed
     on, every 20 ms, with angular velocity), going on from the truth over their first 0.1 s within `handover_m`
-    (a wrong time or frame at the hand-over is tens of cm to metres off): 10 cm for one camera (under 3 cm is
+    (a wrong time or frame at the hand-over is tens of cm to metres off): 10 cm for one camera (under 5 cm is
     what it does), 30 cm for the stereo rig, whose first alignments on its first keyframe are the less sure (on
-    a 2-core VM, with a third process busy, 0.5-15 cm in 7 runs; 45-51 cm before the tracker started at the last
+    a 2-core VM, with a third process busy, 0.5-15 cm in 11 runs; 45-51 cm before the tracker started at the last
     known pose, issue 6); the recording's gyro samples, played by the camera, reach the tracker. How far they drift
     after is measured by `etam bench --only odometry`, not asserted: live, the loop still loses its map."""
     from services.camera.formats import open_recording
