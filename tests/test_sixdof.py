@@ -137,7 +137,7 @@ def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone
         assert follower.add(chunk) == []
     assert not follower.started
     # the first keyframe, seen at 0.3 s, comes now (its sweep took a while)
-    follower.add_map(points, 300_000)
+    follower.add_map(points)
     starts: list[int] = []
     start_on = SixDofTracker.start_on
     monkeypatch.setattr(SixDofTracker, "start_on", lambda self, known, t_us: (starts.append(t_us),

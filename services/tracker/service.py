@@ -226,7 +226,7 @@ class TrackerService(Service):
                                            policy="fifo", maxsize=64):
             assert isinstance(msg, PointCloud)
             if isinstance(self.motion, MapFollower):
-                self.motion.add_map(msg.points, msg.t)
+                self.motion.add_map(msg.points)
                 self.refresh.keyframe_at(self._good_us)
                 self.status["ego_map_parts"] = self.motion.map_parts
 

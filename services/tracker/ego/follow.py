@@ -44,7 +44,6 @@ class MapFollower:
         self._lock = threading.Lock()  # the known poses, and whether it started
         self._started = False
         self._held: collections.deque[np.ndarray] = collections.deque()
-        self._first_map_us: int | None = None  # the first part's keyframe time
         self._known_until_us = -1  # estimates are given from after the last known pose on
         self.map_parts = 0  # how many parts of the map (keyframes) came so far
 
@@ -58,7 +57,7 @@ class MapFollower:
         asked to end its segment there (as `etam odom` does after `--bootstrap` s), not a baseline later."""
         with self._lock:
             span = (self._known[-1][0] - self._known[0][0]) * 1e6 if self._known else 0.0
-        return self._first_map_us is None and span >= BOOTSTRAP_US
+        return not self.map_parts and span >= BOOTSTRAP_US
 
     def known(self, t_us: int, q: np.ndarray, p: np.ndarray) -> bool:
         """A known pose (T_world_cam, quaternion x y z w): whether the loop runs on it (before the start)."""
@@ -73,14 +72,12 @@ class MapFollower:
         (or where they stop), its rotation is predicted from the poses alone."""
         self.gyro.add(t_us, gyro)
 
-    def add_map(self, points: np.ndarray, t_us: int) -> None:
-        """World points (N x 3) of one more part of the map, seen from its keyframe at `t_us`."""
+    def add_map(self, points: np.ndarray) -> None:
+        """World points (N x 3) of one more part of the map (a keyframe's)."""
         points = np.asarray(points, np.float64).reshape(-1, 3)
         if len(points):
             self.tracker.add_points(points)
             self.map_parts += 1
-            if self._first_map_us is None:
-                self._first_map_us = int(t_us)
 
     def add(self, events: np.ndarray) -> list[PoseEstimate]:
         """Events sorted by time; the estimates of the updates they completed (none before the start)."""
@@ -90,7 +87,7 @@ class MapFollower:
             self._held.append(events)
             while int(events["t"][-1]) - int(self._held[0]["t"][-1]) > HELD_US:
                 self._held.popleft()
-        if self._first_map_us is None or len(self._known) < 2 or not self._held:
+        if not self.map_parts or len(self._known) < 2 or not self._held:
             return []
         return self._start()
 
