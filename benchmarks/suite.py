@@ -109,8 +109,7 @@ def format_results(results: dict) -> str:
                      f"{row['seq_gaps']} sequence gaps")
     for row in results.get("tracking", []) + results.get("tracking-held-out", []):
         lines.append(f"{row['stage']} seed {row['seed']!s:>4} ({row['duration_s']:g} s): OP50 {row['op50']:.3f} "
-                     f"OP75 {row['op75']:.3f} "
-                     f"AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
+                     f"OP75 {row['op75']:.3f} AUC {row['success_auc']:.3f} P@20 {row['precision20']:.3f} "
                      f"FP/s {row['false_positives_per_s']:.2f} IDsw/obj/min {row['id_switches_per_object_minute']:.2f} "
                      f"IDF1 {row['idf1']:.3f} MOTA {row['mota']:.3f}  ({row['method']})")
         if "id_switches_crossing" in row:  # where the errors are (means only)

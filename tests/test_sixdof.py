@@ -140,8 +140,12 @@ def test_map_follower_starts_on_known_poses_and_the_first_map_then_goes_on_alone
     follower.add_map(points)
     starts: list[int] = []
     start_on = SixDofTracker.start_on
-    monkeypatch.setattr(SixDofTracker, "start_on", lambda self, known, t_us: (starts.append(t_us),
-                                                                              start_on(self, known, t_us)))
+
+    def spied(self, known, t_us):  # noqa: ANN001, ANN202
+        starts.append(t_us)
+        return start_on(self, known, t_us)
+
+    monkeypatch.setattr(SixDofTracker, "start_on", spied)
     estimates = [e for chunk in chunks[100:] for e in follower.add(chunk)]
     assert follower.started and not follower.known(600_000, *true_pose(600_000))
     last_known = 490_000

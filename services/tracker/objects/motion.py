@@ -155,8 +155,8 @@ def _median(values):  # noqa: ANN001, ANN202 - numba kernel
     35 s of compiling on a fresh install. Not `_percentile(values, 50)`: halving each middle value before adding them
     loses the last bit of subnormal values (5e-324 twice gave 0), as NumPy's sum-then-halve does not."""
     s = np.sort(values)
-    n = len(s)
-    return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
+    half = len(s) >> 1
+    return (s[half - 1] + s[half]) / 2 if len(s) % 2 == 0 else s[half]
 
 
 @numba.njit(cache=True, nogil=True)
