@@ -83,6 +83,8 @@ Leftover = Callable[[Box, np.ndarray], tuple[np.ndarray, int, int]]
 Counts = Callable[[np.ndarray], np.ndarray]
 # a detection -> the boxes (2 x 4) of two targets moving apart in it, or None
 Motions = Callable[[Box], np.ndarray | None]
+# the two boxes of the targets whose union a detection's shape is, if it is two's (`shapes.two_rectangles`)
+Shapes = Callable[[Box], np.ndarray | None]
 # a box, the boxes beside it and a guess (px/s) -> the velocity (px/s) of the events in it outside those, or None
 PartVelocity = Callable[[Box, list[Box], tuple[float, float]], tuple[float, float] | None]
 
@@ -206,6 +208,10 @@ class AssociationParams:
     # 1.769 -> 1.785, precision@20 0.9559 both ways, IDF1 0.858 -> 0.856 (1 px: no faster)
     motion_retest_max_us: int = 300_000
     motion_retest_px: float = 2.0
+    # the parts of a split detection both have new events at this share of the other's rate (per pixel) at least
+    split_contrast: float = 0.3
+    # a split track takes the part its prediction overlaps this many times more (IoU), else the bigger one
+    split_own_ratio: float = 1.5
 
 
 @dataclass
@@ -366,20 +372,23 @@ class MultiObjectTracker:
     def update(self, t_us: int, boxes: np.ndarray, fresh: Counts | None = None,
                layout: Layout | None = None, leftover: Leftover | None = None,
                motions: Motions | None = None, parts: PartVelocity | None = None,
-               looks: Looks | None = None) -> list[Track]:
+               looks: Looks | None = None, shapes: Shapes | None = None) -> list[Track]:
         """Tracks at `t_us` given the detections (N x 4 boxes) of that time, if known how to count the
         new events in a box since the last update, how to place tracks that share a detection (else they
-        move by prediction), how to box the events that placed tracks leave in a detection and how to
-        find two targets moving apart in one (else a detection is never split), how to measure the
-        velocity of a track's own part of a shared detection (else placed tracks keep theirs), and what
-        targets look like (else tracks in a shared detection are placed by the layout alone)."""
+        move by prediction), how to box the events that placed tracks leave in a detection, how to
+        find two targets moving apart in one and two whose union its shape is (else a detection is never
+        split so), how to measure the velocity of a track's own part of a shared detection (else placed
+        tracks keep theirs), and what targets look like (else tracks in a shared detection are placed by
+        the layout alone)."""
         p = self.params
         dets: list[Box] = [tuple(b) for b in np.asarray(boxes, np.float64).reshape(-1, 4).tolist()]
         pred = [tr.predict(t_us) for tr in self.tracks]
         # the confirmed tracks with their predictions, built once for both splits: whose blobs may be split
         splittable = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
         # parts of detections split by motion: targets of their own, not fragments of the track beside them
-        moved_apart = self._split_by_motion(t_us, dets, splittable, motions) if motions is not None else set()
+        moved_apart, taken = self._split_in_two(t_us, dets, splittable, shapes, motions, fresh)
+        for ti, box in taken.items():  # a split track is where its part is
+            pred[ti] = box
         if layout is not None and leftover is not None:
             self._split(dets, splittable, layout, leftover)
         inter = [[_overlap(a, b) for b in dets] for a in pred]
@@ -482,35 +491,79 @@ class MultiObjectTracker:
                 self._next_id += 1
         return list(self.tracks)
 
-    def _split_by_motion(self, t_us: int, dets: list[Box], confirmed: list[tuple[Track, Box]],
-                         motions: Motions) -> set[int]:
-        """Splits (in place) each detection holding most of one confirmed track whose points move two ways:
-        the part its predicted box overlaps more stays its detection, the other is added at the end as a
-        target of its own (their indices are returned). Two targets that came in together, were first seen
-        together, or met and went on side by side form one blob and so one track; here they part as soon
-        as they move apart, not once their blobs separate (the box held both until then)."""
-        p = self.params
+    def _split_in_two(self, t_us: int, dets: list[Box], confirmed: list[tuple[Track, Box]], shapes: Shapes | None,
+                      motions: Motions | None, fresh: Counts | None) -> tuple[set[int], dict[int, Box]]:
+        """Splits (in place) each detection holding most of one confirmed track in two where its shape is two
+        targets' (`_shape_parts`) or, failing that, its points move two ways (`_motion_parts`): the part the
+        track takes (`_taken_part`; of the flow's, the one its prediction overlaps more) stays its detection, the
+        other is added at the end as a target of its own.
+        Two targets that came in together, were first seen together, or met and went on side by side form one
+        blob and so one track; here they part as soon as they are told apart, not once their blobs separate (the
+        box held both until then). The indices of the parts added, and the part each split track (by index) took."""
         added: set[int] = set()
+        taken: dict[int, Box] = {}
         for di, det in enumerate(dets[:]):
             inside = [(tr, a) for tr, a in confirmed if _overlap(a, det) >= 0.5 * _area(a)]
             if len(inside) != 1:
                 continue
             tr, a = inside[0]
-            since = t_us - tr.moved_as_one_us
-            if since < p.motion_retest_us or (since < p.motion_retest_max_us and all(
-                    abs(det[2 + axis] - tr.tested_size[axis]) < p.motion_retest_px for axis in (0, 1))):
+            parts = self._shape_parts(tr, det, shapes, fresh) if shapes is not None else None
+            if parts is not None:
+                own = self._taken_part(a, parts)
+                taken[self.tracks.index(tr)] = parts[own]
+            elif motions is not None and (parts := self._motion_parts(t_us, tr, det, motions)) is not None:
+                # the flow's boxes are rough (its points' spread, clipped to the blob): the track goes on to whichever
+                # its prediction matches (taking the part as for shapes: id switches per object-minute +0.017 on 360
+                # dev seeds, within their noise)
+                own = 0 if _iou(parts[0], a) >= _iou(parts[1], a) else 1
+            else:
                 continue
-            found = motions(det)
-            if found is None:
-                tr.moved_as_one_us = t_us
-                tr.tested_size = (det[2], det[3])
-                continue
-            parts = [(b[0], b[1], b[2], b[3]) for b in found.tolist()]
-            own = 0 if _iou(parts[0], a) >= _iou(parts[1], a) else 1
             dets[di] = parts[own]
             dets.append(parts[1 - own])
             added.add(len(dets) - 1)
-        return added
+        return added, taken
+
+    def _shape_parts(self, tr: Track, det: Box, shapes: Shapes, fresh: Counts | None) -> list[Box] | None:
+        """The two targets' boxes if the detection's shape is their union (see `shapes.py`) and both have new events
+        (where the other's box leaves it) at `split_contrast` of the other's rate or more: a target that starts from
+        a stop leaves its fading image beside its new place, and one that slows, fading patches in its box; those
+        are no second target. None for a held track (its target stopped)."""
+        found = None if tr.held else shapes(det)
+        if found is None:
+            return None
+        parts: list[Box] = [(b[0], b[1], b[2], b[3]) for b in found.tolist()]
+        if fresh is not None:
+            cut = _cut(*parts)
+            cut = cut if cut[2] > 0 and cut[3] > 0 else (0.0, 0.0, 0.0, 0.0)
+            n0, n1, n_cut = fresh(np.asarray([*parts, cut], np.float32)).tolist()
+            rate0 = (n0 - n_cut) / max(_area(parts[0]) - _area(cut), 1.0)
+            rate1 = (n1 - n_cut) / max(_area(parts[1]) - _area(cut), 1.0)
+            if min(rate0, rate1) < self.params.split_contrast * max(rate0, rate1):
+                return None
+        return parts
+
+    def _motion_parts(self, t_us: int, tr: Track, det: Box, motions: Motions) -> list[Box] | None:
+        """The two targets' boxes if the detection's points move two ways (see `motion.py`); tested at most every
+        `motion_retest_us`, or `motion_retest_max_us` while the blob keeps its size (the flow is dear)."""
+        p = self.params
+        since = t_us - tr.moved_as_one_us
+        if since < p.motion_retest_us or (since < p.motion_retest_max_us and all(
+                abs(det[2 + axis] - tr.tested_size[axis]) < p.motion_retest_px for axis in (0, 1))):
+            return None
+        found = motions(det)
+        if found is None:
+            tr.moved_as_one_us = t_us
+            tr.tested_size = (det[2], det[3])
+            return None
+        return [(b[0], b[1], b[2], b[3]) for b in found.tolist()]
+
+    def _taken_part(self, pred: Box, parts: list[Box]) -> int:
+        """Which of two parts of a split detection its track takes: the one its prediction overlaps clearly more
+        (by IoU, `split_own_ratio` times), else the bigger one."""
+        i0, i1 = _iou(parts[0], pred), _iou(parts[1], pred)
+        if max(i0, i1) >= self.params.split_own_ratio * min(i0, i1):
+            return 0 if i0 >= i1 else 1
+        return 0 if _area(parts[0]) >= _area(parts[1]) else 1
 
     def _split(self, dets: list[Box], confirmed: list[tuple[Track, Box]], layout: Layout, leftover: Leftover) -> None:
         """Splits (in place) each detection much bigger than the one confirmed track overlapping it (whose

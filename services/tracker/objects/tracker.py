@@ -7,9 +7,9 @@ Every stage has the variants of the seeds, chosen by `TrackerParams`:
   Canny edges + CamShift per track, clusters for new targets) or `corner` (seed 003's feature
   method: corner clusters);
 - key-event sampling (seed 004) thins an update's events once they exceed `max_events`;
-- a track's blob is split where its points move two ways, and tracks sharing a blob learn their
-  velocities from the motion of their own parts of it (see `motion.py`) and are found by what they
-  looked like on their own (see `appearance.py`).
+- a track's blob is split where its shape is two targets' (see `shapes.py`) or its points move two
+  ways, and tracks sharing a blob learn their velocities from the motion of their own parts of it
+  (see `motion.py`) and are found by what they looked like on their own (see `appearance.py`).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from services.tracker.objects.frames import AdaptiveParams, AdaptiveWindow
 from services.tracker.objects.layout import LayoutParams, fit_layout, leftover
 from services.tracker.objects.motion import MotionParams, ShiftParams, part_velocity, split_by_motion
 from services.tracker.objects.sampling import key_events
+from services.tracker.objects.shapes import ShapeParams, two_rectangles
 
 FRAMES = ("decay", "adaptive")
 DETECTORS = ("contour", "camshift", "corner")
@@ -55,6 +56,7 @@ class TrackerParams:
     motion: MotionParams = field(default_factory=MotionParams)
     shift: ShiftParams = field(default_factory=ShiftParams)
     appearance: AppearanceParams = field(default_factory=AppearanceParams)
+    shapes: ShapeParams = field(default_factory=ShapeParams)
 
     def __post_init__(self) -> None:
         if self.frames not in FRAMES:
@@ -86,7 +88,7 @@ def method_params(name: str) -> TrackerParams:
     return replace(base, clusters=replace(base.clusters), corners=replace(base.corners),
                    adaptive=replace(base.adaptive), association=replace(base.association),
                    layout=replace(base.layout), motion=replace(base.motion), shift=replace(base.shift),
-                   appearance=replace(base.appearance))
+                   appearance=replace(base.appearance), shapes=replace(base.shapes))
 
 
 @dataclass
@@ -139,7 +141,8 @@ class ObjectTracker:
             t_us, boxes, fresh=self.fresh.count,
             layout=lambda preds, sizes, fills, fixed: self._layout(image, preds, sizes, fills, fixed),
             leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions,
-            parts=parts, looks=_Looks(image, self.params.appearance) if self.params.appearance.reach_px else None)
+            parts=parts, looks=_Looks(image, self.params.appearance) if self.params.appearance.reach_px else None,
+            shapes=lambda det: two_rectangles(image, det, self.params.shapes))
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
