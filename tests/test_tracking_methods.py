@@ -143,10 +143,10 @@ def test_warm_up_loads_every_kernel_of_a_default_update_including_the_layout_of_
 import json
 import numpy as np
 from services.messages import EVENT_DTYPE, EventPacket, decode
-from services.tracker.objects import accumulator, activity, clusters, layout, motion
+from services.tracker.objects import accumulator, activity, clusters, layout, motion, shapes
 from services.tracker.objects.tracker import ObjectTracker, warm_up
 kernels = (accumulator._add, accumulator._decay, activity.count_into, activity._count_in, clusters._detect,
-           layout._placed, motion._two_groups, motion._halves, motion._translation)
+           layout._placed, motion._two_groups, motion._halves, motion._translation, shapes._two_rectangles)
 assert not any(k.signatures for k in kernels)
 warm_up()
 loaded = [len(k.signatures) for k in kernels]

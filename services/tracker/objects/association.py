@@ -385,7 +385,7 @@ class MultiObjectTracker:
         pred = [tr.predict(t_us) for tr in self.tracks]
         # the confirmed tracks with their predictions, built once for both splits: whose blobs may be split
         splittable = [(tr, a) for tr, a in zip(self.tracks, pred, strict=True) if tr.state == TRACKED]
-        # parts of detections split by motion: targets of their own, not fragments of the track beside them
+        # parts of detections split by shape or motion: targets of their own, not fragments of the track beside them
         moved_apart, taken = self._split_in_two(t_us, dets, splittable, shapes, motions, fresh)
         for ti, box in taken.items():  # a split track is where its part is
             pred[ti] = box
@@ -496,10 +496,10 @@ class MultiObjectTracker:
         """Splits (in place) each detection holding most of one confirmed track in two where its shape is two
         targets' (`_shape_parts`) or, failing that, its points move two ways (`_motion_parts`): the part the
         track takes (`_taken_part`; of the flow's, the one its prediction overlaps more) stays its detection, the
-        other is added at the end as a target of its own.
-        Two targets that came in together, were first seen together, or met and went on side by side form one
-        blob and so one track; here they part as soon as they are told apart, not once their blobs separate (the
-        box held both until then). The indices of the parts added, and the part each split track (by index) took."""
+        other is added at the end as a target of its own. Two targets that came in together, were first seen
+        together, or met and went on side by side form one blob and so one track; here they part as soon as they
+        are told apart, not once their blobs separate (the box held both until then). The indices of the parts
+        added, and the part each split track (by index) took."""
         added: set[int] = set()
         taken: dict[int, Box] = {}
         for di, det in enumerate(dets[:]):

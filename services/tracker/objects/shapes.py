@@ -127,3 +127,11 @@ def _fill(filled, rect):  # noqa: ANN001, ANN202 - numba kernel
     if c1 <= c0 or r1 <= r0:
         return 0.0
     return filled[r0:r1, c0:c1].sum() / ((c1 - c0) * (r1 - r0))
+
+
+def warm_up() -> None:
+    """Loads the kernels (see `tracker.warm_up`): its warm-up scene has no blob big enough to test."""
+    image = np.zeros((48, 64), np.float32)
+    image[4:24, 20:60] = 1.0
+    image[14:44, 4:40] = 1.0
+    two_rectangles(image, (4, 4, 56, 40), ShapeParams())

@@ -23,7 +23,7 @@ import numpy as np
 
 from services import events as ev_ops
 from services.messages import EVENT_DTYPE
-from services.tracker.objects import appearance, motion
+from services.tracker.objects import appearance, motion, shapes
 from services.tracker.objects.accumulator import DecayedAccumulator, to_uint8
 from services.tracker.objects.activity import FreshCounts
 from services.tracker.objects.appearance import AppearanceParams
@@ -259,3 +259,4 @@ def warm_up(params: TrackerParams | None = None) -> None:
         tracker.generate(t_us)
     motion.warm_up()
     appearance.warm_up()
+    shapes.warm_up()
