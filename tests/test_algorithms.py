@@ -1236,21 +1236,21 @@ def test_two_rectangles_cuts_a_blob_whose_shape_is_two_offset_targets_and_no_oth
     for (xa, ya), (xb, yb) in (((150, 20), (110, 56)), ((60, 20), (100, 56))):  # upper right or upper left
         image = _frame(0.0, [(b, (xb, yb), (0, 0)), (a, (xa, ya), (0, 0))])  # a nearer, over b
         box = (min(xa, xb), ya, max(xa + 64, xb + 76) - min(xa, xb), yb + 60 - ya)
-        parts = two_rectangles(image, box, ShapeParams())
+        parts = two_rectangles(image, box, 0.35, ShapeParams())
         assert parts is not None
         overlap = iou(np.array([[xa, ya, 64, 46], [xb, yb, 76, 60]], np.float32), parts)
         assert np.diag(overlap).min() > 0.9
 
     one = _frame(0.0, [(b, (110, 56), (0, 0))])
-    assert two_rectangles(one, (110, 56, 76, 60), ShapeParams()) is None
+    assert two_rectangles(one, (110, 56, 76, 60), 0.35, ShapeParams()) is None
     sparse = _frame(0.0, [((rng.random((60, 76)) < 0.15).astype(np.float32) * 2.0, (110, 56), (0, 0))])
-    assert two_rectangles(sparse, (110, 56, 76, 60), ShapeParams()) is None
+    assert two_rectangles(sparse, (110, 56, 76, 60), 0.35, ShapeParams()) is None
     wide, tall = _textured_patch(rng, 30, 90), _textured_patch(rng, 90, 30)
     cross = _frame(0.0, [(wide, (100, 80), (0, 0)), (tall, (130, 50), (0, 0))])
-    assert two_rectangles(cross, (100, 50, 90, 90), ShapeParams()) is None
+    assert two_rectangles(cross, (100, 50, 90, 90), 0.35, ShapeParams()) is None
     small = _frame(0.0, [(_textured_patch(rng, 12, 16), (150, 20), (0, 0)),
                          (_textured_patch(rng, 14, 18), (140, 28), (0, 0))])
-    assert two_rectangles(small, (140, 20, 26, 22), ShapeParams()) is None
+    assert two_rectangles(small, (140, 20, 26, 22), 0.35, ShapeParams()) is None
 
 
 def test_a_tracks_blob_shaped_as_two_targets_is_split_and_the_track_takes_the_bigger_part() -> None:

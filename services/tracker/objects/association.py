@@ -535,10 +535,9 @@ class MultiObjectTracker:
         if fresh is not None:
             cut = _cut(*parts)
             cut = cut if cut[2] > 0 and cut[3] > 0 else (0.0, 0.0, 0.0, 0.0)
-            n0, n1, n_cut = fresh(np.asarray([*parts, cut], np.float32)).tolist()
-            rate0 = (n0 - n_cut) / max(_area(parts[0]) - _area(cut), 1.0)
-            rate1 = (n1 - n_cut) / max(_area(parts[1]) - _area(cut), 1.0)
-            if min(rate0, rate1) < self.params.split_contrast * max(rate0, rate1):
+            *counts, n_cut = fresh(np.asarray([*parts, cut], np.float32)).tolist()
+            rates = [(n - n_cut) / max(_area(b) - _area(cut), 1.0) for n, b in zip(counts, parts, strict=True)]
+            if min(rates) < self.params.split_contrast * max(rates):
                 return None
         return parts
 

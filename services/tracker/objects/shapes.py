@@ -21,20 +21,20 @@ from services.tracker.objects import cells
 
 @dataclass
 class ShapeParams:
-    recent: float = 0.35  # decayed weight of a pixel counted as firing (one event ~ 1 tau ago), as the boxes use
     min_share: float = 0.1  # each empty corner spans at least this share of the box's width and of its height
     min_px: int = 8  # ... and this many pixels on each side (0: the split is off)
     min_fill: float = 0.3  # each of the two boxes has at least this share of its 2 x 2 px blocks firing
     min_area_px: int = 600  # smaller boxes are not split
 
 
-def two_rectangles(image: np.ndarray, box: np.ndarray | tuple, params: ShapeParams) -> np.ndarray | None:
-    """The two boxes (2 x 4: x, y, w, h) whose union the recent pixels of `box` in a decayed `image` fill, if they
-    leave two opposite corners of it empty; None if they fill it as one target does (or it is too small to tell)."""
+def two_rectangles(image: np.ndarray, box: np.ndarray | tuple, recent: float, params: ShapeParams) -> np.ndarray | None:
+    """The two boxes (2 x 4: x, y, w, h) whose union the recent pixels (decayed weight `recent` or more, as the
+    detections' boxes count them) of `box` in a decayed `image` fill, if they leave two opposite corners of it empty;
+    None if they fill it as one target does (or it is too small to tell)."""
     x, y, w, h = (float(v) for v in box)
     if params.min_px <= 0 or w * h < params.min_area_px:
         return None
-    found = _two_rectangles(image, x, y, w, h, np.float32(params.recent), params.min_share, params.min_px,
+    found = _two_rectangles(image, x, y, w, h, np.float32(recent), params.min_share, params.min_px,
                             params.min_fill)
     return found if len(found) else None
 
@@ -91,13 +91,7 @@ def _two_rectangles(image, x, y, w, h, recent, min_share, min_px, min_fill):  # 
 @numba.njit(cache=True, nogil=True)
 def _clear(image, x0, y0, w, h, recent):  # noqa: ANN001, ANN202 - numba kernel
     """Whether no 2 x 2 px block of the `w` x `h` px at (x0, y0) has two pixels firing."""
-    for by in range(y0, y0 + h - 1, 2):
-        for bx in range(x0, x0 + w - 1, 2):
-            n = ((image[by, bx] >= recent) + (image[by, bx + 1] >= recent) + (image[by + 1, bx] >= recent)
-                 + (image[by + 1, bx + 1] >= recent))
-            if n >= 2:
-                return False
-    return True
+    return cells.occupancy(image[y0:y0 + h, x0:x0 + w], 2, recent).max() < 2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -134,4 +128,4 @@ def warm_up() -> None:
     image = np.zeros((48, 64), np.float32)
     image[4:24, 20:60] = 1.0
     image[14:44, 4:40] = 1.0
-    two_rectangles(image, (4, 4, 56, 40), ShapeParams())
+    two_rectangles(image, (4, 4, 56, 40), 0.5, ShapeParams())

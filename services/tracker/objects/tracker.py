@@ -142,7 +142,7 @@ class ObjectTracker:
             layout=lambda preds, sizes, fills, fixed: self._layout(image, preds, sizes, fills, fixed),
             leftover=lambda det, boxes: leftover(image, det, boxes, self.params.layout.recent), motions=motions,
             parts=parts, looks=_Looks(image, self.params.appearance) if self.params.appearance.reach_px else None,
-            shapes=lambda det: two_rectangles(image, det, self.params.shapes))
+            shapes=lambda det: two_rectangles(image, det, self.params.clusters.recent, self.params.shapes))
         self.fresh.reset()
         return TrackSet(
             t_us=t_us,
